@@ -1,0 +1,479 @@
+"""Interacting multiple model estimators: fixed structure (FSIMM), variable structure with
+model-group switching (VSIMM) and the activation-only VSIMM (AO-VSIMM) of seed 001.
+
+Representation
+--------------
+All Monte Carlo runs are filtered together. Each run carries its own set of running models
+on a padded *slot* axis: ``model_index`` (R, A) names the model in each slot (-1 = empty),
+and ``x`` (R, A, n), ``P`` (R, A, n, n) hold that model's estimate. Slots are kept compact
+(valid slots first, axis trimmed to the largest set), and the Kalman predict/update runs only
+on the valid (run, slot) pairs, so a variable-structure estimator that runs 5 of 13 models
+really does ~5/13 of the per-model work.
+
+Weights are kept in the log domain and unnormalised: ``log_weight`` = log mu_{k|k-1} + log L_k
+(numerator of eq 1). Normalising over whatever set is running gives mu_k, which is exactly
+the seed's "common models need no recomputation, only renormalisation" (eqs 2-6).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, replace
+from typing import Literal
+
+import numpy as np
+
+from filters.base import MeasurementSeries, TrackEstimate
+from filters.kalman import predict, update
+from filters.models import AccelerationModelSet, two_point_initialisation
+
+
+@dataclass(frozen=True)
+class ModeSet:
+    """Per-model estimates of every run on a padded slot axis.
+
+    model_index : (R, A) int, -1 marks an empty slot
+    x : (R, A, n); P : (R, A, n, n)
+    log_predicted : (R, A) log mu_{k|k-1} (eq 1, 3); -inf for empty slots
+    log_likelihood : (R, A) log L_k (eq 1); -inf for empty slots
+    log_weight : (R, A) log_predicted + log_likelihood, the unnormalised posterior weight
+    """
+
+    model_index: np.ndarray
+    x: np.ndarray
+    P: np.ndarray
+    log_predicted: np.ndarray
+    log_likelihood: np.ndarray
+    log_weight: np.ndarray
+
+    @property
+    def valid(self) -> np.ndarray:
+        return self.model_index >= 0
+
+    def probabilities(self) -> np.ndarray:
+        """mu_k (R, A): the weights normalised over each run's running set (eq 1)."""
+        top = np.max(self.log_weight, axis=1, keepdims=True)
+        top = np.where(np.isfinite(top), top, 0.0)
+        w = np.exp(self.log_weight - top)
+        return w / w.sum(axis=1, keepdims=True)
+
+
+def _take_slots(s: ModeSet, order: np.ndarray) -> ModeSet:
+    take = lambda a: np.take_along_axis(a, order.reshape(order.shape + (1,) * (a.ndim - 2)), axis=1)  # noqa: E731
+    return ModeSet(*(take(getattr(s, f)) for f in ("model_index", "x", "P", "log_predicted",
+                                                     "log_likelihood", "log_weight")))
+
+
+def compact(s: ModeSet) -> ModeSet:
+    """Move valid slots first (stable) and trim the slot axis to the largest running set."""
+    valid = s.valid
+    width = max(int(valid.sum(axis=1).max()), 1)
+    if valid[:, :width].all() and width == valid.shape[1]:
+        return s
+    order = np.argsort(~valid, axis=1, kind="stable")[:, :width]
+    return _take_slots(s, order)
+
+
+def drop_slots(s: ModeSet, keep: np.ndarray) -> ModeSet:
+    """Empty the slots where ``keep`` is False (terminated or discarded models), then compact."""
+    gone = ~keep
+    return compact(replace(
+        s,
+        model_index=np.where(keep, s.model_index, -1),
+        log_predicted=np.where(gone, -np.inf, s.log_predicted),
+        log_likelihood=np.where(gone, -np.inf, s.log_likelihood),
+        log_weight=np.where(gone, -np.inf, s.log_weight),
+    ))
+
+
+def concat(a: ModeSet, b: ModeSet) -> ModeSet:
+    return ModeSet(*(np.concatenate([getattr(a, f), getattr(b, f)], axis=1)
+                     for f in ("model_index", "x", "P", "log_predicted", "log_likelihood", "log_weight")))
+
+
+def combine(s: ModeSet) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """IMM output combination: x = sum mu x^j, P = sum mu (P^j + d d')."""
+    mu = s.probabilities()
+    x = np.einsum("ra,rai->ri", mu, s.x)
+    d = s.x - x[:, None, :]
+    P = np.einsum("ra,raij->rij", mu, s.P + d[..., :, None] * d[..., None, :])
+    return x, P, mu
+
+
+@dataclass(frozen=True)
+class LinearModelBank:
+    """What the IMM cycle needs of the models: x' = F x + offset_m, noise Q, measurement H.
+
+    F, Q are shared (n, n) or per model (M, n, n); offsets (M, n); tpm (M, M).
+    """
+
+    transition: np.ndarray
+    process_noise: np.ndarray
+    offsets: np.ndarray
+    tpm: np.ndarray
+    measurement_matrix: np.ndarray
+
+    @property
+    def n_models(self) -> int:
+        return self.tpm.shape[0]
+
+    @property
+    def tpm_padded(self) -> np.ndarray:
+        M = self.n_models
+        padded = np.zeros((M + 1, M + 1))
+        padded[:M, :M] = self.tpm
+        return padded
+
+    @classmethod
+    def from_model_set(cls, models: AccelerationModelSet) -> "LinearModelBank":
+        return cls(models.transition, models.process_noise, models.offsets, models.transition_matrix,
+                   models.measurement_matrix)
+
+
+def imm_cycle(prior: ModeSet, targets: np.ndarray, z: np.ndarray, noise_covariance: np.ndarray,
+              bank: LinearModelBank, tpm_padded: np.ndarray, detected: np.ndarray | None = None) -> ModeSet:
+    """One IMM cycle VSIMM[M_k, M_{k-1}] (seed 001 eqs 1-6; literature notes 4.3).
+
+    ``prior`` holds the k-1 posteriors of the models that ran at k-1; ``targets`` (R, B) names
+    the models to run at k (-1 = none). Only valid (run, target) pairs reach the Kalman filter.
+    """
+    R, A = prior.model_index.shape
+    M = bank.n_models
+    n = prior.x.shape[-1]
+    valid = targets >= 0
+    B = targets.shape[1]
+    mu = prior.probabilities()
+    src = np.where(prior.valid, prior.model_index, M)
+    dst = np.where(valid, targets, M)
+    joint = tpm_padded[src[:, :, None], dst[:, None, :]] * mu[:, :, None]           # pi_ij mu^i, (R, A, B)
+    predicted = joint.sum(axis=1)                                                     # eqs 1, 3
+    reachable = predicted > 0
+    # eq 5; a model no running model can switch to keeps mu = 0 and mixes with the posteriors
+    weights = np.where(reachable[:, None, :], joint / np.where(reachable, predicted, 1.0)[:, None, :],
+                       mu[:, :, None])
+    wT = np.swapaxes(weights, 1, 2)                                                   # (R, B, A)
+    reference = prior.x[:, :1, :]                                                     # centring keeps eq 6 exact
+    dx = prior.x - reference
+    x_mix = wT @ dx                                                                   # eq 5, centred
+    second = (prior.P + dx[..., :, None] * dx[..., None, :]).reshape(R, A, n * n)
+    P_mix = (wT @ second).reshape(R, B, n, n) - x_mix[..., :, None] * x_mix[..., None, :]   # eq 6
+    x_mix = x_mix + reference
+
+    all_valid = bool(valid.all())
+    if all_valid:
+        xs, Ps, model = x_mix.reshape(R * B, n), P_mix.reshape(R * B, n, n), targets.reshape(-1)
+        run_of = np.repeat(np.arange(R), B)
+    else:
+        run_of, slot_of = np.nonzero(valid)
+        xs, Ps, model = x_mix[run_of, slot_of], P_mix[run_of, slot_of], targets[run_of, slot_of]
+    F = bank.transition[model] if bank.transition.ndim == 3 else bank.transition
+    Q = bank.process_noise[model] if bank.process_noise.ndim == 3 else bank.process_noise
+    x_pred, P_pred = predict(xs, Ps, F, Q, bank.offsets[model])
+    Rm = noise_covariance[run_of] if noise_covariance.ndim == 3 else noise_covariance
+    x_post, P_post, loglik = update(x_pred, P_pred, z[run_of], bank.measurement_matrix, Rm)
+    if detected is not None and not detected.all():
+        seen = detected[run_of]
+        x_post = np.where(seen[:, None], x_post, x_pred)
+        P_post = np.where(seen[:, None, None], P_post, P_pred)
+        loglik = np.where(seen, loglik, 0.0)
+
+    with np.errstate(divide="ignore"):
+        log_pred = np.where(valid, np.log(predicted), -np.inf)
+    if all_valid:
+        x_out, P_out, ll_out = x_post.reshape(R, B, n), P_post.reshape(R, B, n, n), loglik.reshape(R, B)
+    else:
+        x_out = np.zeros((R, B, n))
+        P_out = np.zeros((R, B, n, n))
+        ll_out = np.full((R, B), -np.inf)
+        x_out[run_of, slot_of] = x_post
+        P_out[run_of, slot_of] = P_post
+        ll_out[run_of, slot_of] = loglik
+    return ModeSet(targets, x_out, P_out, log_pred, ll_out, log_pred + ll_out)
+
+
+def _logsumexp(a: np.ndarray, axis: int) -> np.ndarray:
+    top = np.max(a, axis=axis, keepdims=True)
+    top = np.where(np.isfinite(top), top, 0.0)
+    with np.errstate(divide="ignore"):
+        return np.log(np.exp(a - top).sum(axis=axis)) + np.squeeze(top, axis=axis)
+
+
+class _IMMBase:
+    """Shared run loop: two-point start at k = 1, one cycle per scan after that."""
+
+    name: str
+
+    def __init__(self, models: AccelerationModelSet, name: str, initial_model: str = "m1") -> None:
+        self.models = models
+        self.name = name
+        self.bank = LinearModelBank.from_model_set(models)
+        self._tpm_padded = self.bank.tpm_padded
+        self.initial_model = models.model_index(initial_model)
+        M = models.n_models
+        G = len(models.group_names)
+        # membership[g, m]: model m belongs to group g; the extra column M stands for "empty slot"
+        self.membership = np.zeros((G, M + 1), dtype=bool)
+        for g in range(G):
+            self.membership[g, models.groups[g][models.groups[g] >= 0]] = True
+        # centre_group[m]: the group whose centre (first member) is model m, else -1 (activation, sec 4.1)
+        self.centre_group = np.full(M + 1, -1)
+        for g in range(G):
+            self.centre_group[models.groups[g][0]] = g
+
+    # ---- hooks -------------------------------------------------------------------------
+    def _initial_models(self) -> np.ndarray:
+        raise NotImplementedError
+
+    def _initial_groups(self) -> int:
+        return -1
+
+    def _step(self, prior: ModeSet, z: np.ndarray, noise: np.ndarray, detected) -> tuple[ModeSet, np.ndarray]:
+        raise NotImplementedError
+
+    # ---- driver ------------------------------------------------------------------------
+    def _start(self, measurements: MeasurementSeries) -> ModeSet:
+        z = measurements.z
+        R = z.shape[0]
+        noise = measurements.noise_covariance
+        if noise.ndim == 4:
+            noise = noise[0, 1]
+        x0, P0 = two_point_initialisation(z[:, 0], z[:, 1], float(np.diff(measurements.time[:2])[0]), noise)
+        members = self._initial_models()
+        A = members.size
+        if self.initial_model not in members:
+            raise ValueError(f"initial_model {self.models.names[self.initial_model]!r} is not among the "
+                             f"models running at the start: {[self.models.names[m] for m in members]}")
+        log_w = np.where(members == self.initial_model, 0.0, -np.inf)
+        return ModeSet(
+            np.broadcast_to(members, (R, A)).copy(),
+            np.broadcast_to(x0[:, None, :], (R, A, x0.shape[-1])).copy(),
+            np.broadcast_to(P0[:, None], (R, A) + P0.shape[1:]).copy(),
+            np.broadcast_to(log_w, (R, A)).copy(),
+            np.zeros((R, A)),
+            np.broadcast_to(log_w, (R, A)).copy(),
+        )
+
+    def run(self, measurements: MeasurementSeries) -> TrackEstimate:
+        """Filter every run. Estimates start at scan 1 (two-point differencing of scans 0 and 1)."""
+        started = time.perf_counter()
+        z = measurements.z
+        R, K, _ = z.shape
+        if K < 2:
+            raise ValueError(f"{self.name}: needs at least 2 scans for two-point initialisation, got {K}")
+        M = self.models.n_models
+        n = 4
+        state_out = np.full((R, K, n), np.nan)
+        cov_out = np.full((R, K, n, n), np.nan)
+        mode_prob = np.full((R, K, M), np.nan)
+        evaluated = np.zeros((R, K), dtype=np.int16)
+        active = np.full((R, K), -1, dtype=np.int16)
+        candidate = np.full((R, K), -1, dtype=np.int16)
+        noise = measurements.noise_covariance
+        detected = measurements.detected
+
+        s = self._start(measurements)
+        self._reset_logic(R)
+        rows = np.arange(R)[:, None]
+        for k in range(1, K):
+            if k > 1:
+                noise_k = noise[:, k] if noise.ndim == 4 else noise
+                s, evaluated[:, k] = self._step(s, z[:, k], noise_k, detected[:, k])
+            x, P, mu = combine(s)
+            state_out[:, k], cov_out[:, k] = x, P
+            full = np.zeros((R, M + 1))
+            full[rows, np.where(s.valid, s.model_index, M)] = mu
+            mode_prob[:, k] = full[:, :M]
+            active[:, k], candidate[:, k] = self._groups_now()
+        elapsed = time.perf_counter() - started
+        extras = {
+            "mode_probabilities": mode_prob,
+            "acceleration": mode_prob @ self.models.accelerations,  # a_hat = sum mu_m a^(m) (spec 001)
+            "models_evaluated": evaluated,
+            "active_group": active,
+            "candidate_group": candidate,
+        }
+        return TrackEstimate(measurements.time, state_out, cov_out, extras, elapsed)
+
+    def _reset_logic(self, runs: int) -> None:
+        self._old = np.full(runs, self._initial_groups())
+        self._new = np.full(runs, -1)
+
+    def _groups_now(self) -> tuple[np.ndarray, np.ndarray]:
+        return self._old, self._new
+
+    # ---- shared pieces of the variable-structure logic ---------------------------------
+    def _activation(self, result: ModeSet, eligible: np.ndarray) -> np.ndarray:
+        """Activation logic (seed sec 4.1, notes 4.4): the max-likelihood model of M_o is the centre
+        of another group and its probability exceeds t_a -> that group. Returns (R,) group or -1."""
+        mu = result.probabilities()
+        best = np.argmax(result.log_likelihood, axis=1)
+        rows = np.arange(best.size)
+        best_model = result.model_index[rows, best]
+        target = self.centre_group[np.where(best_model >= 0, best_model, -1)]
+        fire = eligible & (target >= 0) & (target != self._old) & (mu[rows, best] > self.activation_threshold)
+        return np.where(fire, target, -1)
+
+    def _activate(self, prior: ModeSet, result: ModeSet, z, noise, detected, target: np.ndarray
+                  ) -> tuple[ModeSet, np.ndarray]:
+        """Initialise M_n = M_a minus M_o from the k-1 posteriors (eqs 2-6) and filter it with z_k;
+        append it to the running set. Returns the union and the number of new models per run."""
+        fire = target >= 0
+        members = self.models.groups[np.where(fire, target, 0)]                       # (R, S)
+        already = (members[:, :, None] == result.model_index[:, None, :]).any(-1)
+        new_targets = np.where(fire[:, None] & ~already & (members >= 0), members, -1)
+        new = imm_cycle(prior, new_targets, z, noise, self.bank, self._tpm_padded, detected)
+        return compact(concat(result, new)), (new_targets >= 0).sum(axis=1)
+
+    def _in_group(self, s: ModeSet, group: np.ndarray) -> np.ndarray:
+        idx = np.where(s.valid, s.model_index, self.models.n_models)
+        return self.membership[np.where(group >= 0, group, 0)[:, None], idx] & (group >= 0)[:, None]
+
+
+class FSIMM(_IMMBase):
+    """Standard IMM (Blom & Bar-Shalom 1988) over every model of the set, every scan."""
+
+    def __init__(self, models: AccelerationModelSet, name: str = "FSIMM", initial_model: str = "m1") -> None:
+        super().__init__(models, name, initial_model)
+
+    def _initial_models(self) -> np.ndarray:
+        return np.arange(self.models.n_models)
+
+    def _step(self, prior, z, noise, detected):
+        s = imm_cycle(prior, prior.model_index, z, noise, self.bank, self._tpm_padded, detected)
+        return s, s.valid.sum(axis=1)
+
+
+class AOVSIMM(_IMMBase):
+    """Activation-only VSIMM (seed 001 sec 3, notes 4.6).
+
+    Runs one group. When the activation logic fires, the new group's extra models are
+    initialised from the current group's k-1 estimates (eqs 2-6), the common models keep
+    their weights, the old group's other models are discarded at once, and only M_a runs on.
+    """
+
+    def __init__(self, models: AccelerationModelSet, name: str = "AO-VSIMM", initial_group: str = "M1",
+                 initial_model: str = "m1", activation_threshold: float = 0.4) -> None:
+        super().__init__(models, name, initial_model)
+        self.initial_group = models.group_index(initial_group)
+        if not 0.0 <= activation_threshold <= 1.0:
+            raise ValueError(f"activation_threshold: {activation_threshold} must be a probability in [0, 1]")
+        self.activation_threshold = float(activation_threshold)
+
+    def _initial_models(self) -> np.ndarray:
+        g = self.models.groups[self.initial_group]
+        return g[g >= 0]
+
+    def _initial_groups(self) -> int:
+        return self.initial_group
+
+    def _step(self, prior, z, noise, detected):
+        result = imm_cycle(prior, prior.model_index, z, noise, self.bank, self._tpm_padded, detected)
+        evaluated = result.valid.sum(axis=1)
+        target = self._activation(result, np.ones(len(self._old), dtype=bool))
+        if (target < 0).all():
+            return result, evaluated
+        union, added = self._activate(prior, result, z, noise, detected, target)
+        fire = target >= 0
+        keep = np.where(fire[:, None], self._in_group(union, target), union.valid)   # discard M_o \ M_a
+        self._old = np.where(fire, target, self._old)
+        return drop_slots(union, keep), evaluated + added
+
+
+class VSIMM(_IMMBase):
+    """VSIMM with model-group switching (Li, Zhi & Zhang 1999 Part III; seed 001 sec 2, eq 8).
+
+    After activation the union M_u = M_o U M_a runs until the termination logic ends one group.
+    Ratios (t^mu, t^L) and rules follow ``ratio``:
+
+    - ``printed``: t^mu = mu(M_o)/mu(M_a), t^L = prod L(M_o)/L(M_a) (eq 8 as printed); both below
+      t1 -> end M_a, both above t2 -> end M_o. Reproduces the paper's S2 failure (spec 001).
+    - ``new_old``: the same rules on new/old ratios (notes 4.5's recommended reading).
+    - ``old_new``: old/new ratios with the rules flipped (below t1 -> end M_o).
+
+    Group probability mu(M) = sum of member mu; group likelihood
+    L(M) = sum mu_{k|k-1} L / sum mu_{k|k-1} over members (notes 4.5). Termination is tested
+    from the activation step on; no new activation while the union runs.
+    """
+
+    RATIOS = ("printed", "new_old", "old_new")
+
+    def __init__(self, models: AccelerationModelSet, name: str = "VSIMM", initial_group: str = "M1",
+                 initial_model: str = "m1", activation_threshold: float = 0.4,
+                 t1_mu: float = 0.85, t2_mu: float = 0.93, t1_L: float = 0.9, t2_L: float = 1.0,
+                 ratio: Literal["printed", "new_old", "old_new"] = "printed") -> None:
+        super().__init__(models, name, initial_model)
+        if ratio not in self.RATIOS:
+            raise ValueError(f"ratio: {ratio!r} is not one of {list(self.RATIOS)}")
+        for key, value in (("activation_threshold", activation_threshold),):
+            if not 0.0 <= value <= 1.0:
+                raise ValueError(f"{key}: {value} must be a probability in [0, 1]")
+        for key, value in (("t1_mu", t1_mu), ("t2_mu", t2_mu), ("t1_L", t1_L), ("t2_L", t2_L)):
+            if not value > 0:
+                raise ValueError(f"{key}: {value} must be a positive ratio threshold")
+        if t1_mu > t2_mu or t1_L > t2_L:
+            raise ValueError(f"thresholds: need t1_mu <= t2_mu and t1_L <= t2_L, got t1_mu={t1_mu}, "
+                             f"t2_mu={t2_mu}, t1_L={t1_L}, t2_L={t2_L}")
+        self.initial_group = models.group_index(initial_group)
+        self.activation_threshold = float(activation_threshold)
+        self.log_t1_mu, self.log_t2_mu = np.log(t1_mu), np.log(t2_mu)
+        self.log_t1_L, self.log_t2_L = np.log(t1_L), np.log(t2_L)
+        self.ratio = ratio
+
+    def _initial_models(self) -> np.ndarray:
+        g = self.models.groups[self.initial_group]
+        return g[g >= 0]
+
+    def _initial_groups(self) -> int:
+        return self.initial_group
+
+    def _reset_logic(self, runs: int) -> None:
+        super()._reset_logic(runs)
+        self._log_lr = np.zeros(runs)   # log of the sequential likelihood ratio t^L since k0
+
+    def _step(self, prior, z, noise, detected):
+        result = imm_cycle(prior, prior.model_index, z, noise, self.bank, self._tpm_padded, detected)
+        evaluated = result.valid.sum(axis=1)
+        in_union = self._new >= 0
+        target = self._activation(result, ~in_union)
+        fire = target >= 0
+        if fire.any():
+            result, added = self._activate(prior, result, z, noise, detected, target)
+            evaluated = evaluated + added
+            self._new = np.where(fire, target, self._new)
+            self._log_lr = np.where(fire, 0.0, self._log_lr)
+            in_union = in_union | fire
+        if not in_union.any():
+            return result, evaluated
+        return self._terminate(result, in_union), evaluated
+
+    def _terminate(self, s: ModeSet, in_union: np.ndarray) -> ModeSet:
+        """Termination logic (eq 8, notes 4.5) for the runs whose union is running."""
+        in_old = self._in_group(s, self._old)
+        in_new = self._in_group(s, self._new)
+        mu = s.probabilities()
+        with np.errstate(divide="ignore", invalid="ignore"):
+            log_mu_old = np.log((mu * in_old).sum(axis=1))
+            log_mu_new = np.log((mu * in_new).sum(axis=1))
+            neg = -np.inf
+            log_L_old = (_logsumexp(np.where(in_old, s.log_weight, neg), 1)
+                         - _logsumexp(np.where(in_old, s.log_predicted, neg), 1))
+            log_L_new = (_logsumexp(np.where(in_new, s.log_weight, neg), 1)
+                         - _logsumexp(np.where(in_new, s.log_predicted, neg), 1))
+        if self.ratio == "new_old":
+            log_t_mu, step_lr = log_mu_new - log_mu_old, log_L_new - log_L_old
+        else:
+            log_t_mu, step_lr = log_mu_old - log_mu_new, log_L_old - log_L_new
+        self._log_lr = np.where(in_union, self._log_lr + step_lr, self._log_lr)
+        low = in_union & (log_t_mu < self.log_t1_mu) & (self._log_lr < self.log_t1_L)
+        high = in_union & (log_t_mu > self.log_t2_mu) & (self._log_lr > self.log_t2_L)
+        if self.ratio == "old_new":
+            end_old, end_new = low, high
+        else:
+            end_new, end_old = low, high
+        if not (end_old.any() or end_new.any()):
+            return s
+        keep = np.where(end_new[:, None], in_old, np.where(end_old[:, None], in_new, s.valid))
+        self._old = np.where(end_old, self._new, self._old)
+        self._new = np.where(end_old | end_new, -1, self._new)
+        self._log_lr = np.where(end_old | end_new, 0.0, self._log_lr)
+        return drop_slots(s, keep)

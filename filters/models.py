@@ -1,0 +1,178 @@
+"""Motion models and their process noise.
+
+State layout for planar models: (x, vx, y, vy), the order of seed 001 eq (7).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from fractions import Fraction
+from typing import Mapping, Sequence
+
+import numpy as np
+
+
+def constant_velocity_transition(dt: float, axes: int = 2) -> np.ndarray:
+    """F of a constant-velocity model, (p, v) per axis, axes stacked block-diagonally (eq 7)."""
+    block = np.array([[1.0, dt], [0.0, 1.0]])
+    return np.kron(np.eye(axes), block)
+
+
+def acceleration_input_gain(dt: float, axes: int = 2) -> np.ndarray:
+    """Gamma of eq (7): how a piecewise-constant acceleration enters (p, v) per axis."""
+    return np.kron(np.eye(axes), np.array([[dt * dt / 2.0], [dt]]))
+
+
+def position_measurement_matrix(axes: int = 2) -> np.ndarray:
+    """H picking the positions out of (p, v) per axis."""
+    return np.kron(np.eye(axes), np.array([[1.0, 0.0]]))
+
+
+def two_point_initialisation(z0: np.ndarray, z1: np.ndarray, dt: float, noise_covariance: np.ndarray
+                             ) -> tuple[np.ndarray, np.ndarray]:
+    """Two-point differencing: position z1, velocity (z1 - z0)/dt (Bar-Shalom, Li & Kirubarajan 5.5.3).
+
+    z0, z1 are (..., m) position measurements; the state is (p, v) per axis. The covariance per
+    axis pair (i, j) is [[R_ij, R_ij/dt], [R_ij/dt, 2 R_ij/dt^2]], which keeps the cross-axis terms
+    of a correlated R.
+    """
+    axes = z0.shape[-1]
+    x = np.empty(z0.shape[:-1] + (2 * axes,))
+    x[..., 0::2] = z1
+    x[..., 1::2] = (z1 - z0) / dt
+    block = np.array([[1.0, 1.0 / dt], [1.0 / dt, 2.0 / dt**2]])
+    P = np.kron(noise_covariance, block)
+    return x, np.broadcast_to(P, x.shape[:-1] + P.shape).copy()
+
+
+def _parse_probability(value: object, where: str) -> float:
+    if isinstance(value, str):
+        try:
+            return float(Fraction(value.replace(" ", "")))
+        except (ValueError, ZeroDivisionError):
+            raise ValueError(f"{where}: '{value}' is not a number or a fraction like '29/30'") from None
+    try:
+        return float(value)  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        raise ValueError(f"{where}: {value!r} is not a number or a fraction like '29/30'") from None
+
+
+@dataclass(frozen=True)
+class AccelerationModelSet:
+    """Models that differ only in a known mean acceleration (seed 001 eqs 7, 9-11).
+
+    Model m: x_{k+1} = F x_k + Gamma (a_m + w_k), w_k ~ N(0, q^2 I). Models are grouped for
+    variable-structure IMM; each group lists its centre model first (eq 10), which is what
+    the activation logic keys on.
+
+    Attributes
+    ----------
+    names : model names, e.g. ("m1", ..., "m13")
+    accelerations : (M, 2) mean accelerations [m/s^2]
+    group_names : e.g. ("M1", ..., "M5")
+    groups : (G, S) int model indices per group, centre first
+    transition_matrix : (M, M), row i = P(m_k = j | m_{k-1} = i)
+    """
+
+    names: tuple[str, ...]
+    accelerations: np.ndarray
+    group_names: tuple[str, ...]
+    groups: np.ndarray
+    transition_matrix: np.ndarray
+    process_noise_std: float
+    dt: float
+
+    @classmethod
+    def from_config(cls, accelerations: Mapping[str, Sequence[float]], transition_matrix: Sequence[Sequence],
+                    groups: Mapping[str, Sequence[str]] | None = None, process_noise_std: float = 10.0,
+                    dt: float = 1.0, row_tolerance: float = 1e-9) -> "AccelerationModelSet":
+        """Build and validate from config-shaped values (names -> accelerations, names -> members).
+
+        Raises ValueError naming the offending argument, value and what is allowed.
+        """
+        names = tuple(str(n) for n in accelerations)
+        if not names:
+            raise ValueError("accelerations: no models given; give at least one name: [ax, ay]")
+        acc = []
+        for name in names:
+            value = list(accelerations[name])
+            if len(value) != 2:
+                raise ValueError(f"accelerations.{name}: {value} must be a pair [ax, ay] in m/s^2")
+            acc.append([float(v) for v in value])
+        M = len(names)
+        rows = list(transition_matrix)
+        if len(rows) != M or any(len(list(r)) != M for r in rows):
+            shape = f"{len(rows)}x{'/'.join(sorted({str(len(list(r))) for r in rows})) or 0}"
+            raise ValueError(
+                f"transition_matrix: shape {shape} does not match the {M} models {list(names)}; "
+                f"it must be {M}x{M}, row i holding P(m_k = j | m_(k-1) = i)")
+        tpm = np.array([[_parse_probability(v, f"transition_matrix[{i}][{j}]") for j, v in enumerate(r)]
+                        for i, r in enumerate(rows)])
+        if (tpm < 0).any() or (tpm > 1).any():
+            i, j = np.argwhere((tpm < 0) | (tpm > 1))[0]
+            raise ValueError(f"transition_matrix[{i}][{j}] = {tpm[i, j]} is not a probability in [0, 1]")
+        sums = tpm.sum(axis=1)
+        bad = np.flatnonzero(np.abs(sums - 1.0) > row_tolerance)
+        if bad.size:
+            i = int(bad[0])
+            raise ValueError(
+                f"transition_matrix: row {i} ({names[i]}) sums to {sums[i]:.12g}; every row must sum to 1 "
+                f"(within {row_tolerance:g}). Rows not summing to 1: {[names[b] for b in bad]}")
+        if groups is None:
+            groups = {"all": list(names)}
+        group_names = tuple(str(g) for g in groups)
+        index = {n: i for i, n in enumerate(names)}
+        members = []
+        for g in group_names:
+            listed = [str(m) for m in groups[g]]
+            unknown = [m for m in listed if m not in index]
+            if unknown:
+                raise ValueError(f"groups.{g}: unknown models {unknown}; known models are {list(names)}")
+            if len(set(listed)) != len(listed) or not listed:
+                raise ValueError(f"groups.{g}: {listed} must list distinct models, centre first")
+            members.append([index[m] for m in listed])
+        size = max(len(m) for m in members)
+        group_array = np.full((len(members), size), -1, dtype=np.int64)
+        for gi, m in enumerate(members):
+            group_array[gi, : len(m)] = m
+        if not float(process_noise_std) >= 0:
+            raise ValueError(f"process_noise_std: {process_noise_std} must be >= 0 (m/s^2)")
+        if not float(dt) > 0:
+            raise ValueError(f"dt: {dt} must be > 0 (s)")
+        return cls(names, np.array(acc), group_names, group_array, tpm, float(process_noise_std), float(dt))
+
+    @property
+    def n_models(self) -> int:
+        return len(self.names)
+
+    @property
+    def transition(self) -> np.ndarray:
+        return constant_velocity_transition(self.dt)
+
+    @property
+    def input_gain(self) -> np.ndarray:
+        return acceleration_input_gain(self.dt)
+
+    @property
+    def process_noise(self) -> np.ndarray:
+        G = self.input_gain
+        return self.process_noise_std**2 * G @ G.T
+
+    @property
+    def offsets(self) -> np.ndarray:
+        """(M, 4): Gamma a_m, the known-input term of each model's prediction."""
+        return self.accelerations @ self.input_gain.T
+
+    @property
+    def measurement_matrix(self) -> np.ndarray:
+        return position_measurement_matrix()
+
+    def model_index(self, name: str) -> int:
+        if name not in self.names:
+            raise ValueError(f"model {name!r} is not one of {list(self.names)}")
+        return self.names.index(name)
+
+    def group_index(self, name: str) -> int:
+        if name not in self.group_names:
+            raise ValueError(f"group {name!r} is not one of {list(self.group_names)}")
+        return self.group_names.index(name)
