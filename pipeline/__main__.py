@@ -1,0 +1,66 @@
+"""The Hydra app: ``python -m pipeline [experiment=NAME] [key=value ...]`` and ``-m`` for sweeps.
+
+A failed job prints one paragraph and exits non-zero in a single run; in a multirun it records
+its error (status.json + a failed summary row) and lets the other jobs go on.
+"""
+
+from __future__ import annotations
+
+import logging
+import sys
+from pathlib import Path
+
+import hydra
+from hydra.core.hydra_config import HydraConfig
+from hydra.types import RunMode
+from omegaconf import DictConfig, OmegaConf
+
+from pipeline.errors import PipelineError
+from pipeline.runner import RunContext, describe_exception, record_failure, run_experiment
+
+log = logging.getLogger("pipeline")
+
+
+@hydra.main(version_base="1.3", config_path="../conf", config_name="config")
+def main(cfg: DictConfig) -> float | None:
+    hc = HydraConfig.get()
+    multirun = hc.mode == RunMode.MULTIRUN
+    run_dir = Path(hc.runtime.output_dir)
+    artifacts = Path(str(cfg.paths.artifacts))
+    sweep = None
+    if multirun:
+        try:
+            sweep = Path(hc.sweep.dir).resolve().relative_to(artifacts.resolve()).as_posix()
+        except ValueError:
+            sweep = str(hc.sweep.dir)
+    ctx = RunContext(run_dir, artifacts, list(hc.overrides.task), sweep, hc.job.num if multirun else None)
+    experiment = str(cfg.get("experiment_name"))
+    try:
+        outcome = run_experiment(cfg, ctx)
+    except PipelineError as exc:
+        _fail(ctx, experiment, cfg, str(exc), None)
+        print(f"error: {exc}", file=sys.stderr)
+        if not multirun:
+            sys.exit(2)
+        return None
+    except Exception as exc:  # a bug or a numerical failure: keep the sweep alive, keep the evidence
+        message, detail = describe_exception(exc)
+        _fail(ctx, experiment, cfg, message, detail)
+        if not multirun:
+            raise
+        log.error("job %s failed: %s (traceback in %s)", hc.job.num, message, run_dir / "status.json")
+        return None
+    print(outcome.table)
+    return None
+
+
+def _fail(ctx: RunContext, experiment: str, cfg: DictConfig, message: str, detail: str | None) -> None:
+    try:
+        resolved = OmegaConf.to_container(cfg, resolve=True)
+    except Exception:
+        resolved = None
+    record_failure(ctx, experiment, message, resolved, detail)
+
+
+if __name__ == "__main__":
+    main()

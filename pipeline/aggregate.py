@@ -1,0 +1,69 @@
+"""Sweep-level summary: every job's summary.parquet in one file at the sweep root.
+
+Hydra calls ``SweepSummary.on_multirun_end`` after a multirun. Jobs never raise out of the task
+function (they record their failure instead), so the callback runs even when a job failed; it is
+also a CLI for a sweep that was interrupted: ``python -m pipeline.aggregate <sweep_dir>``.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import sys
+from pathlib import Path
+
+import polars as pl
+from hydra.experimental.callback import Callback
+from omegaconf import DictConfig
+
+from pipeline.store import atomic_write_parquet
+
+log = logging.getLogger("pipeline.aggregate")
+
+
+def aggregate(sweep_dir: Path) -> tuple[pl.DataFrame, list[dict]]:
+    """Concatenate the jobs' summaries (schemas may differ: swept keys, failed jobs) and list failures."""
+    sweep_dir = Path(sweep_dir)
+    frames, failures = [], []
+    for status_path in sorted(sweep_dir.glob("*/status.json"), key=lambda p: (len(p.parent.name), p.parent.name)):
+        status = json.loads(status_path.read_text())
+        if status.get("status") != "ok":
+            failures.append(status)
+        summary = status_path.parent / "summary.parquet"
+        if summary.exists():
+            try:
+                frames.append(pl.read_parquet(summary))
+            except Exception as exc:
+                log.warning("skipped %s: %s", summary, exc)
+    df = pl.concat(frames, how="diagonal_relaxed") if frames else pl.DataFrame()
+    if frames:
+        atomic_write_parquet(df, sweep_dir / "sweep_summary.parquet", {"mtt.table": "sweep_summary"})
+    return df, failures
+
+
+class SweepSummary(Callback):
+    def on_multirun_end(self, config: DictConfig, **kwargs) -> None:
+        sweep_dir = Path(config.hydra.sweep.dir)
+        df, failures = aggregate(sweep_dir)
+        jobs = len(list(sweep_dir.glob("*/status.json")))
+        print(f"sweep {sweep_dir}: {jobs} jobs, {jobs - len(failures)} ok, {len(failures)} failed; "
+              f"summary of all jobs in {sweep_dir / 'sweep_summary.parquet'}", file=sys.stderr)
+        for f in failures:
+            print(f"  job {f.get('job_num')} ({' '.join(f.get('overrides', []))}) {f.get('status')}: {f.get('error')}",
+                  file=sys.stderr)
+        if failures:
+            sys.exit(1)
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = sys.argv[1:] if argv is None else argv
+    if len(args) != 1 or not Path(args[0]).is_dir():
+        print("usage: python -m pipeline.aggregate <sweep_dir>  (a directory holding <job>/status.json)", file=sys.stderr)
+        return 2
+    df, failures = aggregate(Path(args[0]))
+    print(f"{df.height} summary rows; {len(failures)} failed jobs", file=sys.stderr)
+    return 1 if failures else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,114 @@
+"""Config checks at the stage boundary, and instantiation with errors that name the config key.
+
+Hydra itself rejects unknown config groups/options (listing the available ones); everything it
+cannot know (value ranges, cross-key consistency, what a ``_target_`` constructor refuses) is
+checked here before any stage runs.
+"""
+
+from __future__ import annotations
+
+import json
+from typing import Any
+
+from hydra.errors import InstantiationException
+from hydra.utils import instantiate
+from omegaconf import DictConfig, ListConfig, OmegaConf
+
+from pipeline.errors import ConfigError
+
+
+def _is_int(value: Any) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+def selected_variants(cfg: DictConfig) -> list[str]:
+    available = list(cfg.filters.keys()) if cfg.get("filters") else []
+    wanted = cfg.get("variants")
+    if wanted is None:
+        return available
+    if isinstance(wanted, str):
+        wanted = [wanted]
+    unknown = [v for v in wanted if v not in available]
+    if unknown:
+        raise ConfigError(
+            f"variants: {list(wanted)} names unknown variant(s) {unknown}. The variants of experiment "
+            f"'{cfg.get('experiment_name')}' are {available}; add one with +filter@filters.NAME=<file in conf/filter> "
+            f"or leave variants unset (null) to run them all.")
+    return list(wanted)
+
+
+def validate(cfg: DictConfig) -> None:
+    """Reject bad values before any stage runs."""
+    missing = sorted(OmegaConf.missing_keys(cfg))
+    if missing:
+        raise ConfigError(f"missing mandatory config value(s) {missing}: select an experiment with "
+                          f"experiment=NAME (see conf/experiment/) or set them on the command line.")
+    runs = cfg.mc.runs
+    if not _is_int(runs) or runs < 1:
+        raise ConfigError(f"mc.runs: {runs!r} is not allowed; the number of Monte Carlo runs must be an integer >= 1.")
+    seed = cfg.mc.seed
+    if not _is_int(seed) or seed < 0:
+        raise ConfigError(f"mc.seed: {seed!r} is not allowed; the seed must be an integer >= 0.")
+    if not cfg.get("filters"):
+        raise ConfigError(f"filters: experiment '{cfg.experiment_name}' defines no filter variants; add at least "
+                          f"one node with a _target_ under filters (e.g. +filter@filters.fsimm=fsimm).")
+    for key, node in cfg.filters.items():
+        if not isinstance(node, DictConfig) or "_target_" not in node:
+            raise ConfigError(f"filters.{key}: {node!r} is not a variant node; each variant needs a _target_ "
+                              f"naming its estimator class (see conf/filter/).")
+    selected_variants(cfg)
+    record = cfg.record
+    record_runs = record.runs
+    if isinstance(record_runs, int):
+        record_runs = [record_runs]
+    if not isinstance(record_runs, (list, ListConfig)) or not all(_is_int(r) for r in record_runs):
+        raise ConfigError(f"record.runs: {record_runs!r} must be a list of run indices, e.g. [0] or [0,3].")
+    bad = [r for r in record_runs if not 0 <= r < runs]
+    if bad:
+        raise ConfigError(f"record.runs: {list(record_runs)} holds run index(es) {bad} outside the {runs} Monte Carlo "
+                          f"runs; allowed indices are 0..{runs - 1} (mc.runs={runs}).")
+    windows = cfg.metrics.get("windows") or {}
+    for name, bounds in windows.items():
+        if (not isinstance(bounds, (list, ListConfig)) or len(bounds) != 2 or not all(_is_int(b) for b in bounds)
+                or bounds[0] > bounds[1] or bounds[0] < 0):
+            raise ConfigError(f"metrics.windows.{name}: {bounds!r} must be [first_step, last_step] with "
+                              f"0 <= first_step <= last_step.")
+    ref = cfg.metrics.get("reference_variant")
+    if ref is not None and ref not in cfg.filters:
+        raise ConfigError(f"metrics.reference_variant: {ref!r} is not a variant of this experiment; "
+                          f"choose one of {list(cfg.filters.keys())} or null.")
+
+
+def build(node: DictConfig, key: str) -> Any:
+    """instantiate() a config node; a constructor's refusal becomes a ConfigError naming the key."""
+    try:
+        return instantiate(node, _convert_="all")
+    except InstantiationException as exc:
+        cause = exc.__cause__ or exc
+        while isinstance(cause, InstantiationException) and cause.__cause__ is not None:
+            cause = cause.__cause__
+        message = str(cause).strip().splitlines()[0] if str(cause).strip() else type(cause).__name__
+        target = node.get("_target_")
+        raise ConfigError(f"{key}: {message} (while building {target}; fix the value under '{key}' "
+                          f"in the experiment config or on the command line).") from None
+
+
+def flatten(container: Any, prefix: str = "", skip: tuple[str, ...] = ()) -> dict[str, Any]:
+    """Dotted-key scalars of a resolved config; lists become JSON strings."""
+    out: dict[str, Any] = {}
+    if isinstance(container, dict):
+        for k, v in container.items():
+            key = f"{prefix}.{k}" if prefix else str(k)
+            if any(_match(key, s) for s in skip):
+                continue
+            out.update(flatten(v, key, skip))
+    elif isinstance(container, list):
+        out[prefix] = json.dumps(container)
+    else:
+        out[prefix] = container
+    return out
+
+
+def _match(key: str, pattern: str) -> bool:
+    parts, pat = key.split("."), pattern.split(".")
+    return len(parts) == len(pat) and all(p == "*" or p == k for k, p in zip(parts, pat))

@@ -1,0 +1,281 @@
+"""The thin runner: owns paths, the stage cache, provenance and atomic writes.
+
+scenario (truth) -> measure (detections) -> track (one estimate per variant) -> evaluate
+(metrics, summary) -> record (.rrd). Each stage is a pure function of its inputs; the runner
+keys each output by the stage's resolved config and its inputs' keys, so a sweep over a filter
+parameter re-uses the scenario and the measurements, and every variant sees identical inputs.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import json
+import logging
+import time
+import traceback
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+import polars as pl
+from omegaconf import DictConfig, OmegaConf
+
+from filters.base import MeasurementSeries, TrackEstimate
+from pipeline import schemas
+from pipeline.config import build, flatten, selected_variants, validate
+from pipeline.data import Detections, Truth
+from pipeline.stages.evaluate import Window, metrics_frame, per_step_metrics, summary_rows
+from pipeline.store import StageCache, atomic_write_parquet, atomic_write_text, package_version, publish, stable_hash, stage_key
+
+log = logging.getLogger("pipeline")
+
+
+@dataclass
+class RunContext:
+    """Where a run writes and how it identifies itself in every table."""
+
+    run_dir: Path
+    artifacts: Path
+    overrides: list[str]
+    sweep: str | None = None
+    job_num: int | None = None
+
+    @property
+    def run_id(self) -> str:
+        try:
+            return self.run_dir.resolve().relative_to(self.artifacts.resolve()).as_posix()
+        except ValueError:
+            return self.run_dir.as_posix()
+
+
+@dataclass
+class RunOutcome:
+    summary: pl.DataFrame
+    metrics: pl.DataFrame
+    table: str
+
+
+def _now() -> str:
+    return dt.datetime.now().isoformat(timespec="seconds")
+
+
+def write_status(ctx: RunContext, experiment: str, status: str, *, config_hash: str = "", runs: int | None = None,
+                 error: str | None = None, started_at: str | None = None, detail: str | None = None) -> None:
+    path = ctx.run_dir / "status.json"
+    previous = json.loads(path.read_text()) if path.exists() else {}
+    record = {
+        "run_id": ctx.run_id, "experiment": experiment, "status": status, "error": error,
+        "started_at": started_at or previous.get("started_at") or _now(),
+        "finished_at": None if status == "running" else _now(), "overrides": ctx.overrides,
+        "config_hash": config_hash or previous.get("config_hash", ""), "sweep": ctx.sweep, "job_num": ctx.job_num,
+        "runs": runs if runs is not None else previous.get("runs"), "package_version": package_version(),
+    }
+    if detail:
+        record["traceback"] = detail
+    atomic_write_text(json.dumps(record, indent=2), path)
+
+
+def _provenance(df: pl.DataFrame, ctx: RunContext, experiment: str, config_hash: str, status: str = "ok",
+                error: str | None = None) -> pl.DataFrame:
+    return df.with_columns(
+        pl.lit(ctx.run_id).alias("run_id"), pl.lit(experiment).alias("experiment"), pl.lit(status).alias("status"),
+        pl.lit(error, dtype=pl.String).alias("error"), pl.lit(config_hash).alias("config_hash"),
+        pl.lit(" ".join(ctx.overrides)).alias("overrides"), pl.lit(ctx.sweep, dtype=pl.String).alias("sweep"),
+        pl.lit(ctx.job_num, dtype=pl.Int32).alias("job_num"),
+    )
+
+
+def _config_columns(resolved: dict) -> dict[str, Any]:
+    # filters.<v>.models repeats the top-level models node (interpolated): keep it once
+    return {f"{k}": v for k, v in flatten(resolved, skip=("filters.*.models", "description")).items()}
+
+
+def failure_summary(ctx: RunContext, experiment: str, error: str, resolved: dict | None) -> pl.DataFrame:
+    base = pl.DataFrame({"variant": [None], "variant_key": [None], "metric": [None], "window": [None],
+                         "value": [None], "unit": [None], "n_runs": [None]},
+                        schema={"variant": pl.String, "variant_key": pl.String, "metric": pl.String,
+                                "window": pl.String, "value": pl.Float64, "unit": pl.String, "n_runs": pl.Int32})
+    df = _provenance(base, ctx, experiment, stable_hash(resolved) if resolved else "", "failed", error)
+    if resolved:
+        df = df.with_columns(*[pl.lit(v).alias(k) for k, v in _config_columns(resolved).items()])
+    return df
+
+
+def record_failure(ctx: RunContext, experiment: str, error: str, resolved: dict | None, detail: str | None) -> None:
+    """A failed job leaves status.json and a one-row summary saying why, so sweeps stay queryable."""
+    ctx.run_dir.mkdir(parents=True, exist_ok=True)
+    write_status(ctx, experiment, "failed", error=error, detail=detail)
+    atomic_write_parquet(failure_summary(ctx, experiment, error, resolved), ctx.run_dir / "summary.parquet",
+                         schemas.table_metadata("summary", {}, {}))
+
+
+def measurement_series(det: Detections, slot: int = 0) -> MeasurementSeries:
+    """The filters' view of one detection slot (single-target, single-sensor studies)."""
+    cov = det.noise_covariance[:, :, slot]
+    constant = np.allclose(cov, cov[:1, :1])
+    return MeasurementSeries(det.time, det.z[:, :, slot], cov[0, 0] if constant else cov,
+                             det.detected[:, :, slot], det.sensor)
+
+
+class _Stages:
+    def __init__(self, cache: StageCache, ctx: RunContext, provenance: dict[str, str]) -> None:
+        self.cache = cache
+        self.ctx = ctx
+        self.provenance = provenance
+
+    def run(self, stage: str, key: str, table: str, compute: Callable[[], Any],
+            to_frame: Callable[[Any], tuple[pl.DataFrame, dict]], publish_as: Path, describe: str) -> Any:
+        started = time.perf_counter()
+        hit = self.cache.load(stage, key, table)
+        if hit is not None:
+            value = schemas.FROM_FRAME[table](*hit)
+            path = self.cache.path(stage, key)
+            log.info("[%s] reused cached %s (key %s) %s, %.2f s", stage, path.name, key, describe, time.perf_counter() - started)
+        else:
+            value = compute()
+            computed = time.perf_counter() - started
+            df, meta = to_frame(value)
+            path = self.cache.store(stage, key, df, {**meta, **self.provenance})
+            log.info("[%s] computed %s, %.2f s (+%.2f s to write the cache)", stage, describe, computed,
+                     time.perf_counter() - started - computed)
+        publish(path, self.ctx.run_dir / publish_as)
+        return value, hit is not None
+
+
+def run_experiment(cfg: DictConfig, ctx: RunContext) -> RunOutcome:
+    """Run every stage of one experiment job; write its tables, recording and status."""
+    total_started = time.perf_counter()
+    experiment = str(cfg.get("experiment_name"))
+    validate(cfg)
+    resolved = OmegaConf.to_container(cfg, resolve=True)
+    config_hash = stable_hash(resolved)
+    runs, seed = int(cfg.mc.runs), int(cfg.mc.seed)
+    ctx.run_dir.mkdir(parents=True, exist_ok=True)
+    write_status(ctx, experiment, "running", config_hash=config_hash, runs=runs)
+    atomic_write_text(OmegaConf.to_yaml(cfg, resolve=True), ctx.run_dir / "config.yaml")
+    variants = selected_variants(cfg)
+    log.info("experiment %s: %d Monte Carlo runs, seed %d, variants %s -> %s", experiment, runs, seed, variants, ctx.run_dir)
+
+    scenario = build(cfg.scenario, "scenario")
+    sensor = build(cfg.sensors, "sensors")
+    estimators = {v: build(cfg.filters[v], f"filters.{v}") for v in variants}
+    cache = StageCache(ctx.artifacts / "cache", enabled=bool(cfg.cache.enabled))
+    provenance = {"mtt.experiment": experiment, "mtt.config_hash": config_hash, "mtt.package_version": package_version()}
+    stages = _Stages(cache, ctx, provenance)
+
+    scenario_key = stage_key("scenario", {"scenario": resolved["scenario"], "runs": runs, "seed": seed})
+    truth, _ = stages.run("scenario", scenario_key, "truth", lambda: scenario.generate(runs, seed),
+                          schemas.truth_to_frame, Path("truth.parquet"), f"{runs} runs")
+    K = truth.time.size
+    measure_key = stage_key("measure", {"sensors": resolved["sensors"], "seed": seed}, (scenario_key,))
+    detections, _ = stages.run("measure", measure_key, "detections", lambda: sensor.measure(truth, seed),
+                               schemas.detections_to_frame, Path("detections.parquet"), f"{runs} runs x {K} scans")
+    series = measurement_series(detections)
+
+    estimates: dict[str, TrackEstimate] = {}
+    display: dict[str, str] = {}
+    cached: dict[str, bool] = {}
+    for v in variants:
+        est_key = stage_key("track", {"filter": resolved["filters"][v]}, (measure_key,))
+        estimator = estimators[v]
+        estimate, hit = stages.run(
+            "track", est_key, "estimates", lambda e=estimator: e.run(series),
+            lambda e: schemas.estimate_to_frame(e, truth.state_names), Path("estimates") / f"{v}.parquet",
+            f"{getattr(estimator, 'name', v)}: {runs} runs x {K} scans")
+        if not hit:
+            per_step = estimate.extras.get("models_evaluated")
+            models = f", {per_step[:, 2:].mean():.2f} models/step" if per_step is not None and K > 2 else ""
+            log.info("[track] %s filtered in %.3f s%s", getattr(estimator, "name", v), estimate.compute_seconds, models)
+        estimates[v] = estimate
+        display[v] = str(getattr(estimator, "name", v))
+        cached[v] = hit
+
+    started = time.perf_counter()
+    per_variant = {v: (display[v], per_step_metrics(truth, estimates[v])) for v in variants}
+    windows = [Window(name, int(b[0]), min(int(b[1]), K - 1)) for name, b in (cfg.metrics.get("windows") or {}).items()]
+    reached = None
+    gr = cfg.metrics.get("group_reached")
+    if gr and cfg.get("models") and "groups" in cfg.models:
+        group_names = list(cfg.models.groups.keys())
+        if gr.group not in group_names:
+            from pipeline.errors import ConfigError
+            raise ConfigError(f"metrics.group_reached.group: {gr.group!r} is not a model group; groups are {group_names}.")
+        reached = (str(gr.group), group_names.index(gr.group), int(gr.by_step))
+    ref = cfg.metrics.get("reference_variant")
+    summary = summary_rows(per_variant, estimates, windows, ref if ref in variants else None, runs, reached)
+    summary = summary.with_columns(pl.col("variant_key").replace_strict(
+        {v: cached[v] for v in variants}, return_dtype=pl.Boolean).alias("estimates_from_cache"))
+    metrics = _provenance(metrics_frame(truth.time, per_variant, runs), ctx, experiment, config_hash)
+    summary = _provenance(summary, ctx, experiment, config_hash)
+    summary = summary.with_columns(*[pl.lit(v).alias(k) for k, v in _config_columns(resolved).items()])
+    meta = {**provenance}
+    atomic_write_parquet(metrics, ctx.run_dir / "metrics.parquet",
+                         {**schemas.table_metadata("metrics", {}, {"value": "see summary units"}), **meta})
+    atomic_write_parquet(summary, ctx.run_dir / "summary.parquet", {**schemas.table_metadata("summary", {}, {}), **meta})
+    log.info("[evaluate] metrics for %d variants x %d steps, %.2f s", len(variants), K, time.perf_counter() - started)
+
+    if cfg.record.enabled:
+        started = time.perf_counter()
+        from pipeline.recording import write_recording
+        record_runs = list(cfg.record.runs) if not isinstance(cfg.record.runs, int) else [cfg.record.runs]
+        models_node = cfg.get("models")
+        write_recording(
+            ctx.run_dir / "recording.rrd", experiment=experiment, truth=truth, detections=detections,
+            estimates=estimates, display_names=display, metrics=metrics, record_runs=record_runs,
+            model_names=list(models_node.accelerations.keys()) if models_node and "accelerations" in models_node else None,
+            group_names=list(models_node.groups.keys()) if models_node and "groups" in models_node else None,
+            config_text=OmegaConf.to_yaml(cfg, resolve=True), description=str(cfg.get("description", "")))
+        log.info("[record] recording.rrd (runs %s), %.2f s", record_runs, time.perf_counter() - started)
+
+    write_status(ctx, experiment, "ok", config_hash=config_hash, runs=runs)
+    log.info("done in %.2f s", time.perf_counter() - total_started)
+    return RunOutcome(summary, metrics, format_summary(summary, experiment, runs))
+
+
+SHOWN = [("acceleration_rmse_x", "acc RMSE X"), ("acceleration_rmse_y", "acc RMSE Y"), ("position_rmse", "pos RMSE"),
+         ("velocity_rmse", "vel RMSE"), ("nees", "NEES"), ("models_evaluated", "models/step"),
+         ("models_pct_of_reference", "models %"), ("group_reached_fraction", "reached"),
+         ("compute_seconds", "compute s"), ("compute_pct_of_reference", "compute %")]
+
+
+def format_summary(summary: pl.DataFrame, experiment: str, runs: int) -> str:
+    """Variant x metric table, one block per window (window-free metrics shown in every block)."""
+    windows = [w for w in summary["window"].unique(maintain_order=True).to_list()
+               if w is not None and " by step " not in w]
+    variants = summary["variant"].unique(maintain_order=True).to_list()
+    lines = [f"{experiment}: {runs} Monte Carlo runs"]
+    for window in windows or [None]:
+        rows = summary.filter(pl.col("window").is_null() | (pl.col("window") == window)
+                              | pl.col("window").str.contains(" by step "))
+        cols = [(m, label) for m, label in SHOWN if m in rows["metric"].to_list()]
+        header = ["variant"] + [label for _, label in cols]
+        table = [header]
+        for v in variants:
+            row = [v]
+            for m, _ in cols:
+                hit = rows.filter((pl.col("variant") == v) & (pl.col("metric") == m))["value"]
+                row.append("" if hit.len() == 0 or hit[0] is None else _fmt(m, hit[0]))
+            table.append(row)
+        widths = [max(len(r[i]) for r in table) for i in range(len(header))]
+        lines.append("")
+        lines.append(f"window: {window}" if window else "")
+        for i, r in enumerate(table):
+            lines.append("  ".join(c.ljust(widths[j]) if j == 0 else c.rjust(widths[j]) for j, c in enumerate(r)))
+            if i == 0:
+                lines.append("  ".join("-" * w for w in widths))
+    return "\n".join(lines)
+
+
+def _fmt(metric: str, value: float) -> str:
+    if metric.endswith("pct_of_reference"):
+        return f"{value:.1f}"
+    if metric == "compute_seconds":
+        return f"{value:.3f}"
+    if metric == "group_reached_fraction":
+        return f"{value:.2f}"
+    return f"{value:.2f}"
+
+
+def describe_exception(exc: BaseException) -> tuple[str, str]:
+    return f"{type(exc).__name__}: {exc}", "".join(traceback.format_exception(exc))

@@ -1,0 +1,152 @@
+"""The tables: in-memory stage outputs <-> tidy Parquet frames (one row per run x step x object).
+
+One function pair per table, used by the writer and the reader alike. Vectors and matrices are
+fixed-size ``pl.Array`` columns (matrices flattened row-major). Every file carries in its
+key-value metadata the table name, the schema version, the units, and the provenance the
+runner adds (experiment, config hash, cache key, package versions).
+"""
+
+from __future__ import annotations
+
+import json
+from typing import Mapping
+
+import numpy as np
+import polars as pl
+
+from filters.base import TrackEstimate
+from pipeline.data import Detections, Truth
+
+SCHEMA_VERSION = "1"
+META_TABLE = "mtt.table"
+META_VERSION = "mtt.schema_version"
+META_UNITS = "mtt.units"
+META_NAMES = "mtt.names"
+
+
+class TableError(ValueError):
+    """A Parquet file that is not the table it claims to be."""
+
+
+def _grid(R: int, K: int, T: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    run = np.repeat(np.arange(R, dtype=np.int32), K * T)
+    step = np.tile(np.repeat(np.arange(K, dtype=np.int32), T), R)
+    obj = np.tile(np.arange(T, dtype=np.int32), R * K)
+    return run, step, obj
+
+
+def _array_column(name: str, values: np.ndarray, rows: int) -> pl.Series:
+    """(rows, ...) -> scalar column if no trailing dims, else a flattened fixed-size Array column."""
+    flat = values.reshape(rows, -1) if values.ndim > 1 else values.reshape(rows)
+    if flat.ndim == 1:
+        return pl.Series(name, flat)
+    inner = pl.Float64 if np.issubdtype(flat.dtype, np.floating) else pl.Int64
+    return pl.Series(name, flat.astype(np.float64 if inner == pl.Float64 else np.int64), dtype=pl.Array(inner, flat.shape[1]))
+
+
+def _column_array(df: pl.DataFrame, name: str, shape: tuple[int, ...]) -> np.ndarray:
+    return df[name].to_numpy().reshape(shape)
+
+
+def table_metadata(table: str, names: Mapping[str, object], units: Mapping[str, str]) -> dict[str, str]:
+    return {META_TABLE: table, META_VERSION: SCHEMA_VERSION, META_NAMES: json.dumps(names),
+            META_UNITS: json.dumps(units)}
+
+
+# ---- truth -------------------------------------------------------------------------------
+def truth_to_frame(truth: Truth) -> tuple[pl.DataFrame, dict[str, str]]:
+    R, K, T, n = truth.state.shape
+    run, step, target = _grid(R, K, T)
+    rows = R * K * T
+    cols = [pl.Series("run", run), pl.Series("step", step), pl.Series("time", truth.time[step]),
+            pl.Series("target", target), _array_column("x", truth.state, rows)]
+    label_shapes = {}
+    for name, values in truth.labels.items():
+        cols.append(_array_column(name, values, rows))
+        label_shapes[name] = list(values.shape[3:])
+    meta = table_metadata("truth", {"state": list(truth.state_names), "labels": label_shapes},
+                          {"time": "s", "x": "m, m/s per state_names", "acceleration": "m/s^2"})
+    return pl.DataFrame(cols), meta
+
+
+def truth_from_frame(df: pl.DataFrame, meta: Mapping[str, str]) -> Truth:
+    names = json.loads(meta[META_NAMES])
+    R, K, T = _extent(df, "target")
+    n = len(names["state"])
+    time = df.filter((pl.col("run") == 0) & (pl.col("target") == 0))["time"].to_numpy()
+    labels = {k: _column_array(df, k, (R, K, T, *shape)) for k, shape in names["labels"].items()}
+    return Truth(time, _column_array(df, "x", (R, K, T, n)), tuple(names["state"]), labels)
+
+
+# ---- detections ----------------------------------------------------------------------------
+def detections_to_frame(d: Detections) -> tuple[pl.DataFrame, dict[str, str]]:
+    R, K, D, m = d.z.shape
+    run, step, slot = _grid(R, K, D)
+    rows = R * K * D
+    target = d.target.reshape(rows)
+    detected = d.detected.reshape(rows)
+    df = pl.DataFrame([
+        pl.Series("run", run), pl.Series("step", step), pl.Series("time", d.time[step]),
+        pl.Series("sensor", d.sensor[step].astype(np.int32)), pl.Series("detection", slot),
+        pl.Series("target", target.astype(np.int32)), _array_column("z", d.z, rows),
+        _array_column("R", d.noise_covariance, rows), pl.Series("detected", detected),
+        pl.Series("clutter", detected & (target < 0)),
+    ])
+    meta = table_metadata("detections", {"measurement": list(d.measurement_names)},
+                          {"time": "s", "z": "m per measurement names", "R": "m^2, row-major m x m"})
+    return df, meta
+
+
+def detections_from_frame(df: pl.DataFrame, meta: Mapping[str, str]) -> Detections:
+    names = json.loads(meta[META_NAMES])["measurement"]
+    R, K, D = _extent(df, "detection")
+    m = len(names)
+    first = df.filter((pl.col("run") == 0) & (pl.col("detection") == 0))
+    return Detections(
+        time=first["time"].to_numpy(), sensor=first["sensor"].to_numpy(),
+        z=_column_array(df, "z", (R, K, D, m)), noise_covariance=_column_array(df, "R", (R, K, D, m, m)),
+        target=_column_array(df, "target", (R, K, D)), detected=_column_array(df, "detected", (R, K, D)),
+        measurement_names=tuple(names),
+    )
+
+
+# ---- estimates -----------------------------------------------------------------------------
+def estimate_to_frame(est: TrackEstimate, state_names: tuple[str, ...]) -> tuple[pl.DataFrame, dict[str, str]]:
+    R, K, n = est.state.shape
+    run, step, target = _grid(R, K, 1)
+    rows = R * K
+    cols = [pl.Series("run", run), pl.Series("step", step), pl.Series("time", est.time[step]),
+            pl.Series("target", target), _array_column("x", est.state, rows),
+            _array_column("P", est.covariance, rows)]
+    extra_shapes = {}
+    for name, values in est.extras.items():
+        cols.append(_array_column(name, values, rows))
+        extra_shapes[name] = {"shape": list(values.shape[2:]), "dtype": str(values.dtype)}
+    meta = table_metadata("estimates", {"state": list(state_names), "extras": extra_shapes},
+                          {"time": "s", "x": "per state names", "P": "row-major n x n",
+                           "compute_seconds": str(est.compute_seconds)})
+    return pl.DataFrame(cols), meta
+
+
+def estimate_from_frame(df: pl.DataFrame, meta: Mapping[str, str]) -> TrackEstimate:
+    names = json.loads(meta[META_NAMES])
+    R, K, _ = _extent(df, "target")
+    n = len(names["state"])
+    time = df.filter(pl.col("run") == 0)["time"].to_numpy()
+    extras = {k: _column_array(df, k, (R, K, *v["shape"])).astype(v["dtype"]) for k, v in names["extras"].items()}
+    seconds = float(json.loads(meta[META_UNITS]).get("compute_seconds", "nan"))
+    return TrackEstimate(time, _column_array(df, "x", (R, K, n)), _column_array(df, "P", (R, K, n, n)), extras, seconds)
+
+
+def _extent(df: pl.DataFrame, object_column: str) -> tuple[int, int, int]:
+    if df.height == 0:
+        raise TableError("the table has no rows")
+    R = int(df["run"].max()) + 1
+    K = int(df["step"].max()) + 1
+    T = int(df[object_column].max()) + 1
+    if df.height != R * K * T:
+        raise TableError(f"{df.height} rows do not fill the run x step x {object_column} grid {R}x{K}x{T}")
+    return R, K, T
+
+
+FROM_FRAME = {"truth": truth_from_frame, "detections": detections_from_frame, "estimates": estimate_from_frame}

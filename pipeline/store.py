@@ -1,0 +1,151 @@
+"""Parquet I/O: atomic writes, the per-stage cache, and provenance metadata.
+
+Writes go to a hidden temp file in the target directory (``.<name>.<random>.tmp``), are
+fsync'ed, then renamed over the target: a reader sees the old file or the new one, never a
+half-written one, and the temp name matches no ``*.parquet`` glob.
+
+The cache keeps one file per stage output under ``<artifacts>/cache/<stage>/<key>.parquet``.
+The key hashes the stage's resolved config, its inputs' keys and the package version. A cached
+file is trusted only if its metadata names the same table and key; anything else (truncated,
+foreign, another key) is reported, moved aside as ``*.rejected`` (nothing is deleted) and
+recomputed.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import os
+import shutil
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Mapping
+
+import polars as pl
+
+from pipeline.schemas import META_TABLE, META_VERSION, SCHEMA_VERSION
+
+META_KEY = "mtt.cache_key"
+log = logging.getLogger("pipeline.store")
+
+
+def package_version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+    try:
+        return version("mtt-experiments")
+    except PackageNotFoundError:
+        return "0+unknown"
+
+
+def stable_hash(obj: Any, length: int = 16) -> str:
+    text = json.dumps(obj, sort_keys=True, default=str, separators=(",", ":"))
+    return hashlib.sha256(text.encode()).hexdigest()[:length]
+
+
+def stage_key(stage: str, config: Any, inputs: tuple[str, ...] = ()) -> str:
+    return stable_hash({"stage": stage, "config": config, "inputs": list(inputs),
+                        "version": package_version(), "schema": SCHEMA_VERSION})
+
+
+def atomic_write_parquet(df: pl.DataFrame, path: Path, metadata: Mapping[str, str] | None = None) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            df.write_parquet(f, metadata=dict(metadata or {}))
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def atomic_write_text(text: str, path: Path) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "w") as f:
+            f.write(text)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def read_table(path: Path) -> tuple[pl.DataFrame, dict[str, str]]:
+    return pl.read_parquet(path), pl.read_parquet_metadata(path)
+
+
+def publish(src: Path, dst: Path) -> None:
+    """Place a cached file into a run directory: hard link if possible (no copy), else copy; atomic."""
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    tmp = dst.parent / f".{dst.name}.{os.getpid()}.link.tmp"
+    if tmp.exists():
+        tmp.unlink()
+    try:
+        os.link(src, tmp)
+    except OSError:
+        shutil.copyfile(src, tmp)
+    os.replace(tmp, dst)
+
+
+@dataclass
+class CacheEvent:
+    stage: str
+    key: str
+    path: Path
+    reused: bool
+    seconds: float = 0.0
+    note: str = ""
+
+
+class StageCache:
+    """Per-stage Parquet cache. ``enabled=False`` still writes (so later runs can reuse) but never reads."""
+
+    def __init__(self, root: Path, enabled: bool = True) -> None:
+        self.root = Path(root)
+        self.enabled = enabled
+        self.events: list[CacheEvent] = []
+
+    def path(self, stage: str, key: str) -> Path:
+        return self.root / stage / f"{key}.parquet"
+
+    def load(self, stage: str, key: str, table: str) -> tuple[pl.DataFrame, dict[str, str]] | None:
+        path = self.path(stage, key)
+        if not self.enabled or not path.exists():
+            return None
+        problem = None
+        try:
+            meta = pl.read_parquet_metadata(path)
+            if meta.get(META_TABLE) != table:
+                problem = f"it holds table {meta.get(META_TABLE)!r}, expected {table!r}"
+            elif meta.get(META_KEY) != key:
+                problem = f"its cache key is {meta.get(META_KEY)!r}, expected {key!r}"
+            elif meta.get(META_VERSION) != SCHEMA_VERSION:
+                problem = f"its schema version is {meta.get(META_VERSION)!r}, expected {SCHEMA_VERSION!r}"
+            else:
+                df = pl.read_parquet(path)
+                return df, meta
+        except Exception as exc:  # unreadable: truncated, not Parquet, ...
+            problem = f"it cannot be read ({type(exc).__name__}: {str(exc).splitlines()[0][:200]})"
+        self.reject(path, problem)
+        return None
+
+    def reject(self, path: Path, problem: str) -> None:
+        aside = path.with_name(f"{path.name}.{time.strftime('%Y%m%d-%H%M%S')}.rejected")
+        os.replace(path, aside)
+        log.warning("cache file %s was not used: %s. It was moved to %s and the stage is recomputed.",
+                    path, problem, aside.name)
+
+    def store(self, stage: str, key: str, df: pl.DataFrame, metadata: Mapping[str, str]) -> Path:
+        path = self.path(stage, key)
+        atomic_write_parquet(df, path, {**metadata, META_KEY: key})
+        return path
