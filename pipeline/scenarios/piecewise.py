@@ -17,7 +17,8 @@ class PiecewiseAccelerationScenario:
     Parameters
     ----------
     initial_state : (x, vx, y, vy) at k = 0 [m, m/s]
-    segments : list of [first_step, last_step, ax, ay]; steps not covered have a = 0
+    segments : list of [first_step, last_step, ax, ay]; steps not covered have a = 0; the
+        profile is cut at ``steps``
     steps : last scan index (the scenario has steps + 1 scans, k = 0..steps)
     dt : scan period [s]
     process_noise_std : std of w_k [m/s^2]; 0 gives the deterministic profile of the paper
@@ -42,9 +43,10 @@ class PiecewiseAccelerationScenario:
             if len(seg) != 4:
                 raise ValueError(f"segments[{i}]: {list(seg)} must be [first_step, last_step, ax, ay]")
             k0, k1 = int(seg[0]), int(seg[1])
-            if not 1 <= k0 <= k1 <= self.steps:
-                raise ValueError(f"segments[{i}]: steps {k0}..{k1} must satisfy 1 <= first <= last <= {self.steps}")
-            self.acceleration[k0:k1 + 1] = [float(seg[2]), float(seg[3])]
+            if not 1 <= k0 <= k1:
+                raise ValueError(f"segments[{i}]: steps {k0}..{k1} must satisfy 1 <= first_step <= last_step")
+            # a profile longer than the horizon is cut at `steps` (so steps=40 gives a quick run)
+            self.acceleration[k0:min(k1, self.steps) + 1] = [float(seg[2]), float(seg[3])]
 
     def generate(self, runs: int, seed: int) -> Truth:
         F = constant_velocity_transition(self.dt)
