@@ -23,8 +23,7 @@ When a slow implementation runs fewer runs than ``--runs``, its time for ``--run
 Correctness checks (printed, and in the JSON; the script exits 1 if one fails; there are no
 timing assertions): reference loop vs our FSIMM (exact start), FilterPy vs the reference loop
 with the same floored start, and FilterPy vs our FSIMM driven from the same floored start
-(a subclass in this file that overrides the private ``_start`` hook; skipped with a message if
-that hook changes). Each compares states (k = 1..200) and acceleration estimates, max abs and
+(``FSIMM(initial_mode_probabilities=...)``). Each compares states (k = 1..200) and acceleration estimates, max abs and
 relative difference, and the acceleration RMSE.
 
 Acceleration RMSE: RMSE_k = sqrt(mean over runs of (a_hat_k - a_k)^2) per axis, then averaged
@@ -34,7 +33,6 @@ over k = 2..200 (the spec's "time-averaged acceleration RMSE (k = 2..200)").
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import os
 import platform
@@ -81,23 +79,6 @@ def build_estimator(models, config_name: str):
     cfg.pop("models", None)
     cfg.pop("defaults", None)
     return cls(models, **cfg)
-
-
-class FlooredStartFSIMM(FSIMM):
-    """Our batched FSIMM started from given mode probabilities instead of e_m1 (benchmark only).
-
-    Overrides the private ``_start`` hook of ``filters.imm._IMMBase``; used solely to compare
-    against FilterPy from the same floored start.
-    """
-
-    def __init__(self, models, initial_probabilities: np.ndarray, name: str = "FSIMM (floored start)"):
-        super().__init__(models, name=name)
-        self.initial_probabilities = np.asarray(initial_probabilities, dtype=float)
-
-    def _start(self, measurements):
-        s = super()._start(measurements)
-        log_mu = np.log(self.initial_probabilities[s.model_index])
-        return dataclasses.replace(s, log_predicted=log_mu, log_weight=log_mu)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -243,13 +224,10 @@ def main(argv: list[str] | None = None) -> int:
                                              "reference loop, floored start (check only)")
         checks.append(compare("FilterPy IMMEstimator", fp_states, fp_acc, reff_states, reff_acc,
                               truth_acc[:fp_runs], "reference loop (same floored start)"))
-        try:
-            fsf = FlooredStartFSIMM(models, mu0).run(meas)
-            checks.append(compare("FilterPy IMMEstimator", fp_states, fp_acc, fsf.state[:fp_runs],
-                                  fsf.extras["acceleration"][:fp_runs], truth_acc[:fp_runs],
-                                  "ours FSIMM (same floored start, via _start override)"))
-        except Exception as exc:  # the private hook changed: say so, keep the other checks
-            print(f"  (ours-with-floored-start check skipped: {type(exc).__name__}: {exc})")
+        fsf = FSIMM(models, name="FSIMM (floored start)", initial_mode_probabilities=mu0.tolist()).run(meas)
+        checks.append(compare("FilterPy IMMEstimator", fp_states, fp_acc, fsf.state[:fp_runs],
+                              fsf.extras["acceleration"][:fp_runs], truth_acc[:fp_runs],
+                              "ours FSIMM (same floored start)"))
         floor_effect = compare("reference loop, floored start", reff_states, reff_acc, ref_states[:fp_runs],
                                ref_acc[:fp_runs], truth_acc[:fp_runs], "reference loop, exact start")
         floor_effect["passed"] = None       # informational: the floor is a different filter
@@ -262,9 +240,12 @@ def main(argv: list[str] | None = None) -> int:
         r["seconds_per_run"] = r["seconds"] / r["runs"]
         r["seconds_at_runs"] = r["seconds_per_run"] * runs
         r["seconds_per_100_runs"] = r["seconds_per_run"] * 100
+    for r in rows:
         r["speedup_vs_filterpy"] = (fp_row["seconds_per_run"] / r["seconds_per_run"]) if fp_row else None
         r["models_pct_of_fsimm"] = 100.0 * r["models_per_step"] / models.n_models
-        r["time_pct_of_fsimm"] = 100.0 * r["seconds_per_run"] / fs_row["seconds_per_run"]
+        # CPU share of FSIMM is only meaningful between the batched estimators (same code path, same runs)
+        r["time_pct_of_fsimm"] = (100.0 * r["seconds_per_run"] / fs_row["seconds_per_run"]
+                                  if r["implementation"].startswith("ours") else None)
 
     # ---- report --------------------------------------------------------------------------------
     print()
@@ -282,20 +263,19 @@ def main(argv: list[str] | None = None) -> int:
           f"| acc RMSE X | acc RMSE Y |")
     print("|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
     for r in rows:
-        star = "*" if r["extrapolated"] else ""
-        per100_star = "*" if r["runs"] != 100 and (r["extrapolated"] or "loop" in r["implementation"]
-                                                   or "FilterPy" in r["implementation"]) else ""
+        star = "*" if r["runs"] != runs else ""
+        per100_star = "*" if r["runs"] != 100 else ""
         speed = f"{r['speedup_vs_filterpy']:.1f}x" if r["speedup_vs_filterpy"] is not None else "n/a"
+        time_pct = "-" if r["time_pct_of_fsimm"] is None else f"{r['time_pct_of_fsimm']:.1f}"
         print(f"| {r['implementation']} | {r['start']} | {r['runs']} | {r['seconds']:.3f} | {r['seconds_per_run']:.4f} "
               f"| {r['seconds_at_runs']:.2f}{star} | {r['seconds_per_100_runs']:.2f}{per100_star} | {speed} "
-              f"| {r['models_per_step']:.2f} | {r['models_pct_of_fsimm']:.1f} | {r['time_pct_of_fsimm']:.1f} "
+              f"| {r['models_per_step']:.2f} | {r['models_pct_of_fsimm']:.1f} | {time_pct} "
               f"| {r['rmse'][0]:.4f} | {r['rmse'][1]:.4f} |")
     notes = []
-    if any(r["extrapolated"] for r in rows):
-        notes.append(f"* extrapolated linearly from the measured per-run time to {runs} runs (fewer runs were timed).")
-    if runs != 100:
-        notes.append(f"s per 100 runs of the batched estimators is scaled from their {runs}-run batch; batching "
-                     f"makes that only indicative. Loop implementations scale linearly.")
+    if any(r["runs"] != runs for r in rows) or runs != 100:
+        notes.append("* not measured: scaled linearly from the measured per-run time (that row timed fewer runs"
+                     + (f"; the batched rows timed {runs}, and batching makes their per-100 figure indicative only"
+                        if runs != 100 else "") + ").")
     notes.append("Batched: one .run over all runs, best of 3. Loops: one run at a time, summed. "
                  "RMSE: per-k RMSE over the timed runs, averaged over k = 2..200.")
     if fp_row:

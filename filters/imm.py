@@ -59,9 +59,10 @@ class ModeSet:
 
 
 def _take_slots(s: ModeSet, order: np.ndarray) -> ModeSet:
-    take = lambda a: np.take_along_axis(a, order.reshape(order.shape + (1,) * (a.ndim - 2)), axis=1)  # noqa: E731
-    return ModeSet(*(take(getattr(s, f)) for f in ("model_index", "x", "P", "log_predicted",
-                                                     "log_likelihood", "log_weight")))
+    # index the two leading axes only, so each slot's (n,) / (n, n) block is copied whole
+    rows = np.arange(order.shape[0])[:, None]
+    return ModeSet(*(getattr(s, f)[rows, order] for f in ("model_index", "x", "P", "log_predicted",
+                                                          "log_likelihood", "log_weight")))
 
 
 def compact(s: ModeSet) -> ModeSet:
@@ -136,7 +137,61 @@ def imm_cycle(prior: ModeSet, targets: np.ndarray, z: np.ndarray, noise_covarian
 
     ``prior`` holds the k-1 posteriors of the models that ran at k-1; ``targets`` (R, B) names
     the models to run at k (-1 = none). Only valid (run, target) pairs reach the Kalman filter.
+
+    Runs whose sets differ in size (a VSIMM union of 8 models beside groups of 5) are filtered in
+    buckets of equal (prior size, target size), so no run mixes or filters padding.
     """
+    valid = targets >= 0
+    counts = valid.sum(axis=1)
+    prior_counts = prior.valid.sum(axis=1)
+    pairs = np.unique(np.stack([prior_counts, counts], axis=1), axis=0)
+    dense = (len(pairs) == 1 and valid[:, : counts[0]].all() and prior.valid[:, : prior_counts[0]].all())
+    if dense:
+        if counts[0] < targets.shape[1] or prior_counts[0] < prior.model_index.shape[1]:
+            return _pad(_dense_cycle(_take_slots(prior, np.broadcast_to(np.arange(prior_counts[0]), (len(counts), prior_counts[0]))),
+                                     targets[:, : counts[0]], z, noise_covariance, bank, tpm_padded, detected),
+                        targets.shape[1])
+        return _dense_cycle(prior, targets, z, noise_covariance, bank, tpm_padded, detected)
+    R, B = targets.shape
+    n = prior.x.shape[-1]
+    out = ModeSet(np.full((R, B), -1), np.zeros((R, B, n)), np.zeros((R, B, n, n)), np.full((R, B), -np.inf),
+                  np.full((R, B), -np.inf), np.full((R, B), -np.inf))
+    prior_order = np.argsort(~prior.valid, axis=1, kind="stable")
+    target_order = np.argsort(~valid, axis=1, kind="stable")
+    for prior_count, count in pairs:
+        if count == 0:
+            continue
+        rows = np.flatnonzero((prior_counts == prior_count) & (counts == count))
+        sub_prior = _take_slots(_take_runs(prior, rows), prior_order[rows, :prior_count])
+        slots = target_order[rows, :count]
+        sub = _dense_cycle(sub_prior, targets[rows[:, None], slots], z[rows], _runs_of(noise_covariance, rows),
+                           bank, tpm_padded, None if detected is None else detected[rows])
+        for field in ("model_index", "x", "P", "log_predicted", "log_likelihood", "log_weight"):
+            getattr(out, field)[rows[:, None], slots] = getattr(sub, field)
+    return out
+
+
+def _take_runs(s: ModeSet, rows: np.ndarray) -> ModeSet:
+    return ModeSet(*(getattr(s, f)[rows] for f in ("model_index", "x", "P", "log_predicted", "log_likelihood",
+                                                     "log_weight")))
+
+
+def _runs_of(noise_covariance: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    return noise_covariance[rows] if noise_covariance.ndim == 3 else noise_covariance
+
+
+def _pad(s: ModeSet, width: int) -> ModeSet:
+    extra = width - s.model_index.shape[1]
+    if extra <= 0:
+        return s
+    R, _, n = s.x.shape
+    return concat(s, ModeSet(np.full((R, extra), -1), np.zeros((R, extra, n)), np.zeros((R, extra, n, n)),
+                             np.full((R, extra), -np.inf), np.full((R, extra), -np.inf), np.full((R, extra), -np.inf)))
+
+
+def _dense_cycle(prior: ModeSet, targets: np.ndarray, z: np.ndarray, noise_covariance: np.ndarray,
+                 bank: LinearModelBank, tpm_padded: np.ndarray, detected: np.ndarray | None) -> ModeSet:
+    """The IMM cycle where every run mixes the same number of prior slots into the same number of targets."""
     R, A = prior.model_index.shape
     M = bank.n_models
     n = prior.x.shape[-1]
@@ -332,11 +387,28 @@ class _IMMBase:
 class FSIMM(_IMMBase):
     """Standard IMM (Blom & Bar-Shalom 1988) over every model of the set, every scan."""
 
-    def __init__(self, models: AccelerationModelSet, name: str = "FSIMM", initial_model: str = "m1") -> None:
+    def __init__(self, models: AccelerationModelSet, name: str = "FSIMM", initial_model: str = "m1",
+                 initial_mode_probabilities: list[float] | None = None) -> None:
+        """``initial_mode_probabilities`` (M,) replaces the default mu_0 = e_{initial_model}."""
         super().__init__(models, name, initial_model)
+        self.initial_mode_probabilities = None
+        if initial_mode_probabilities is not None:
+            mu0 = np.asarray(initial_mode_probabilities, dtype=float)
+            if mu0.shape != (models.n_models,) or (mu0 < 0).any() or abs(mu0.sum() - 1) > 1e-9:
+                raise ValueError(f"initial_mode_probabilities: {list(initial_mode_probabilities)} must be "
+                                 f"{models.n_models} non-negative numbers summing to 1")
+            self.initial_mode_probabilities = mu0
 
     def _initial_models(self) -> np.ndarray:
         return np.arange(self.models.n_models)
+
+    def _start(self, measurements: MeasurementSeries) -> ModeSet:
+        s = super()._start(measurements)
+        if self.initial_mode_probabilities is None:
+            return s
+        with np.errstate(divide="ignore"):
+            log_mu = np.log(self.initial_mode_probabilities)[s.model_index]
+        return replace(s, log_predicted=log_mu, log_weight=log_mu)
 
     def _step(self, prior, z, noise, detected):
         s = imm_cycle(prior, prior.model_index, z, noise, self.bank, self._tpm_padded, detected)

@@ -11,6 +11,21 @@ import numpy as np
 LOG_2PI = float(np.log(2.0 * np.pi))
 
 
+def times_shared(A: np.ndarray, M: np.ndarray) -> np.ndarray:
+    """A @ M for a stack A (..., p, q) and one shared M (q, r), as a single 2-D BLAS product.
+
+    numpy's stacked matmul runs one tiny product per matrix; folding the stack into the rows
+    of one (N*p, q) matrix is 5-10x faster for the 2x2..9x9 matrices of tracking filters.
+    """
+    return (A.reshape(-1, A.shape[-1]) @ M).reshape(A.shape[:-1] + (M.shape[-1],))
+
+
+def shared_times(M: np.ndarray, A: np.ndarray) -> np.ndarray:
+    """M @ A for one shared M (r, p) and a stack A (..., p, q): (A' M')' via times_shared."""
+    At = np.ascontiguousarray(np.swapaxes(A, -1, -2))
+    return np.swapaxes(times_shared(At, M.T), -1, -2)
+
+
 def predict(x: np.ndarray, P: np.ndarray, F: np.ndarray, Q: np.ndarray,
             offset: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """x' = F x + offset, P' = F P F' + Q.
@@ -18,10 +33,14 @@ def predict(x: np.ndarray, P: np.ndarray, F: np.ndarray, Q: np.ndarray,
     ``offset`` carries a known input (e.g. Gamma a for a model with mean acceleration a).
     F and Q may be shared (n, n) or stacked like P.
     """
-    x_pred = np.einsum("...ij,...j->...i", F, x) if F.ndim > 2 else x @ F.T
+    if F.ndim > 2:
+        x_pred = np.einsum("...ij,...j->...i", F, x)
+        P_pred = F @ P @ np.swapaxes(F, -1, -2) + Q
+    else:
+        x_pred = x @ F.T
+        P_pred = shared_times(F, times_shared(P, F.T)) + Q
     if offset is not None:
         x_pred = x_pred + offset
-    P_pred = F @ P @ np.swapaxes(F, -1, -2) + Q
     return x_pred, P_pred
 
 
@@ -53,8 +72,8 @@ def update(x: np.ndarray, P: np.ndarray, z: np.ndarray, H: np.ndarray, R: np.nda
     log N(z; H x, H P H' + R) of the measurement under this prior.
     """
     innovation = z - x @ H.T
-    PHt = P @ H.T
-    S = H @ PHt + R
+    PHt = times_shared(P, H.T)
+    S = shared_times(H, PHt) + R
     S_inv, logdet = inverse_and_logdet(S)
     gain = PHt @ S_inv
     x_post = x + np.einsum("...ij,...j->...i", gain, innovation)

@@ -32,6 +32,15 @@ META_KEY = "mtt.cache_key"
 log = logging.getLogger("pipeline.store")
 
 
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+FILE_MODE = 0o666 & ~_umask()   # mkstemp creates 0600; published tables are ordinary files
+
+
 def package_version() -> str:
     from importlib.metadata import PackageNotFoundError, version
     try:
@@ -58,6 +67,7 @@ def atomic_write_parquet(df: pl.DataFrame, path: Path, metadata: Mapping[str, st
             df.write_parquet(f, metadata=dict(metadata or {}))
             f.flush()
             os.fsync(f.fileno())
+        os.chmod(tmp, FILE_MODE)
         os.replace(tmp, path)
     except BaseException:
         if os.path.exists(tmp):
@@ -73,6 +83,7 @@ def atomic_write_text(text: str, path: Path) -> None:
             f.write(text)
             f.flush()
             os.fsync(f.fileno())
+        os.chmod(tmp, FILE_MODE)
         os.replace(tmp, path)
     except BaseException:
         if os.path.exists(tmp):
