@@ -142,9 +142,13 @@ def imm_cycle(prior: ModeSet, targets: np.ndarray, z: np.ndarray, noise_covarian
     buckets of equal (prior size, target size), so no run mixes or filters padding.
     """
     valid = targets >= 0
+    if valid.all() and prior.valid.all():                      # FSIMM, AO-VSIMM: nothing to bucket
+        return _dense_cycle(prior, targets, z, noise_covariance, bank, tpm_padded, detected)
     counts = valid.sum(axis=1)
     prior_counts = prior.valid.sum(axis=1)
-    pairs = np.unique(np.stack([prior_counts, counts], axis=1), axis=0)
+    width = targets.shape[1] + 1
+    codes = np.unique(prior_counts * width + counts)          # (prior size, target size) pairs
+    pairs = np.stack([codes // width, codes % width], axis=1)
     dense = (len(pairs) == 1 and valid[:, : counts[0]].all() and prior.valid[:, : prior_counts[0]].all())
     if dense:
         if counts[0] < targets.shape[1] or prior_counts[0] < prior.model_index.shape[1]:

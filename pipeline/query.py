@@ -1,0 +1,744 @@
+"""Query the artifacts tree with SQL: ``python -m pipeline.query`` / ``mtt-query``.
+
+Three tables are registered, all lazy:
+
+``summary``
+    every ``summary.parquet`` of every single run (``<root>/runs/<experiment>/<timestamp>/``)
+    and multirun job (``<root>/multirun/<experiment>/<timestamp>/<job_num>/``), failed jobs
+    included (one row, ``status = 'failed'``). Config leaves are columns named by their dotted
+    key (``"filters.vsimm.t1_mu"``). Different experiments carry different config columns and
+    a swept key may be int in one job and float in another: the table is the union of all
+    columns (missing ones are null) with each column at the common supertype (int + float ->
+    float, anything + string -> string).
+``metrics``
+    every ``metrics.parquet`` (per-step series, fixed schema).
+``runs``
+    one row per run/job directory from its ``status.json`` (the ``list`` frame, plus
+    ``finished_at`` and ``config_hash``).
+
+Only files named exactly ``summary.parquet`` / ``metrics.parquet`` / ``status.json`` are read,
+never hidden files or directories (the writers' ``.<name>.<random>.tmp`` temp files, ``.hydra``,
+``.submitit``), never ``*.rejected`` and never ``<root>/cache``. A corrupt or truncated Parquet
+file is skipped with a warning naming it; it does not fail the query.
+
+Reading strategy: the file footers are read first (~0.2 ms a file) to build the superset
+schema, then every file whose columns the scanner can cast to it goes into *one*
+``pl.scan_parquet(files, schema=..., missing_columns="insert", cast_options=...)``. Files that
+need a cast the scanner cannot do (int -> string, list -> JSON string) are scanned per distinct
+schema and cast explicitly, then appended. Only the tables a query names are opened. Measured
+on 300 summary files (2-core box, polars 2.1): collecting the whole summary takes 0.23 s this
+way against 0.84 s for ``pl.concat([scan_parquet(f) ...], how="diagonal_relaxed")``;
+``mtt-query list`` runs in 0.25 s and the example ``sql`` in 0.4 s end to end (interpreter start
+and polars import included).
+
+Python API::
+
+    from pipeline.query import load_tables, query
+    tables = load_tables(Path("artifacts"))                 # {"summary": LazyFrame, ...}
+    df = query('SELECT variant, AVG(value) FROM summary GROUP BY ALL', root="artifacts")
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import re
+import sys
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, Iterable, Mapping, Sequence
+
+import polars as pl
+
+__all__ = ["QueryError", "QueryWarning", "load_tables", "query", "runs_frame", "main",
+           "SUMMARY_COLUMNS", "METRICS_COLUMNS", "RUNS_COLUMNS", "LIST_COLUMNS"]
+
+SUMMARY_FILE = "summary.parquet"
+METRICS_FILE = "metrics.parquet"
+STATUS_FILE = "status.json"
+TABLE_FILES = {"summary": SUMMARY_FILE, "metrics": METRICS_FILE}
+
+#: Columns every summary has (in this order); config columns follow, sorted by name.
+SUMMARY_COLUMNS: dict[str, pl.DataType] = {
+    "run_id": pl.String(), "experiment": pl.String(), "status": pl.String(), "error": pl.String(),
+    "variant": pl.String(), "variant_key": pl.String(), "metric": pl.String(), "window": pl.String(),
+    "value": pl.Float64(), "unit": pl.String(), "n_runs": pl.Int32(), "config_hash": pl.String(),
+    "overrides": pl.String(), "sweep": pl.String(), "job_num": pl.Int32(),
+}
+METRICS_COLUMNS: dict[str, pl.DataType] = {
+    "run_id": pl.String(), "experiment": pl.String(), "variant": pl.String(),
+    "variant_key": pl.String(), "metric": pl.String(), "step": pl.Int32(), "time": pl.Float64(),
+    "value": pl.Float64(), "n_runs": pl.Int32(),
+}
+FIXED_COLUMNS = {"summary": SUMMARY_COLUMNS, "metrics": METRICS_COLUMNS}
+#: The ``runs`` table.
+RUNS_COLUMNS: dict[str, pl.DataType] = {
+    "run_id": pl.String(), "experiment": pl.String(), "kind": pl.String(), "sweep": pl.String(),
+    "job_num": pl.Int32(), "status": pl.String(), "started_at": pl.String(),
+    "finished_at": pl.String(), "runs": pl.Int64(), "overrides": pl.String(),
+    "error": pl.String(), "config_hash": pl.String(),
+}
+#: What ``list`` prints.
+LIST_COLUMNS = ["run_id", "experiment", "kind", "sweep", "job_num", "status", "started_at",
+                "runs", "overrides", "error"]
+TABLE_NAMES = ("summary", "metrics", "runs")
+ERROR_WIDTH = 120
+DEFAULT_MAX_ROWS = 1000
+
+Warn = Callable[[str], None]
+
+
+class QueryError(ValueError):
+    """Bad input (missing root, no runs, unknown table/column, SQL error). The message is
+    meant for the user as is; the CLI prints it and exits with code 2."""
+
+
+class QueryWarning(UserWarning):
+    """A file was skipped (corrupt/truncated Parquet, unreadable status.json)."""
+
+
+def _default_warn(msg: str) -> None:
+    warnings.warn(msg, QueryWarning, stacklevel=3)
+
+
+# ---- discovering run directories --------------------------------------------------------------
+@dataclass(frozen=True)
+class RunDir:
+    path: Path       # absolute
+    run_id: str      # relative to root, posix
+    kind: str        # "run" | "multirun"
+
+
+# depth below runs/ resp. multirun/ at which a run dir lacking status.json is still recognised
+_EXPECTED_DEPTH = {"runs": 2, "multirun": 3}
+_KIND = {"runs": "run", "multirun": "multirun"}
+
+
+def _check_root(root: Path) -> Path:
+    if not root.exists():
+        raise QueryError(
+            f"artifacts root '{root}' does not exist (working directory: {Path.cwd()}). "
+            "Pass --root DIR pointing at the directory that holds runs/ and multirun/, "
+            "i.e. the pipeline's artifacts directory.")
+    if not root.is_dir():
+        raise QueryError(f"artifacts root '{root}' is not a directory. Pass --root DIR pointing "
+                         "at the directory that holds runs/ and multirun/.")
+    return root
+
+
+def discover_runs(root: Path) -> list[RunDir]:
+    """Run/job directories under ``root/runs`` and ``root/multirun``, sorted by path.
+
+    A directory is a run if it holds ``status.json``, or if it sits at the layout's depth
+    (``runs/<exp>/<ts>``, ``multirun/<exp>/<ts>/<job>``) and holds ``summary.parquet`` or
+    ``metrics.parquet``. Hidden directories are never entered; run directories are not
+    descended into (a sweep's aggregate ``summary.parquet`` next to its jobs is not a run).
+    """
+    found: list[RunDir] = []
+    for top in ("runs", "multirun"):
+        base = root / top
+        if not base.is_dir():
+            continue
+        for dirpath, dirnames, filenames in os.walk(base):
+            dirnames[:] = sorted(d for d in dirnames if not d.startswith("."))
+            here = Path(dirpath)
+            depth = len(here.relative_to(base).parts)
+            names = set(filenames)
+            if STATUS_FILE in names or (depth == _EXPECTED_DEPTH[top]
+                                        and names & {SUMMARY_FILE, METRICS_FILE}):
+                found.append(RunDir(here, here.relative_to(root).as_posix(), _KIND[top]))
+                dirnames[:] = []
+    found.sort(key=lambda r: r.run_id)
+    return found
+
+
+def _resolve_under_root(root: Path, d: Path | str, option: str) -> str:
+    p = Path(d)
+    candidates = [p] if p.is_absolute() else [root / p, Path.cwd() / p]
+    for c in candidates:
+        if c.is_dir():
+            try:
+                rel = c.resolve().relative_to(root.resolve()).as_posix()
+            except ValueError:
+                raise QueryError(f"{option} '{d}' is not inside the artifacts root '{root}'. "
+                                 "Give it relative to the root (as in the run_id/sweep "
+                                 "columns), relative to the working directory, or absolute.") from None
+            return "" if rel == "." else rel
+    raise QueryError(f"{option} '{d}': no such directory, neither under the artifacts root "
+                     f"'{root}' nor relative to the working directory.")
+
+
+def _sample(items: Sequence[str], n: int = 20) -> str:
+    items = list(items)
+    if not items:
+        return "(none)"
+    more = f", ... ({len(items) - n} more)" if len(items) > n else ""
+    return ", ".join(items[:n]) + more
+
+
+def _select_runs(root: Path, sweep: Path | str | None, run: Path | str | None) -> list[RunDir]:
+    root = _check_root(Path(root))
+    runs = discover_runs(root)
+    if not runs:
+        entries = sorted(p.name for p in root.iterdir() if not p.name.startswith("."))
+        raise QueryError(
+            f"no runs found under the artifacts root '{root}': expected "
+            "runs/<experiment>/<timestamp>/status.json or "
+            "multirun/<experiment>/<timestamp>/<job_num>/status.json. "
+            f"The root holds: {_sample(entries)}. Pass --root DIR to point elsewhere.")
+    if sweep is not None:
+        s = _resolve_under_root(root, sweep, "--sweep")
+        sel = [r for r in runs if s == "" or r.run_id.startswith(s + "/")]
+        if not sel:
+            sweeps = sorted({r.run_id.rsplit("/", 1)[0] for r in runs if r.kind == "multirun"})
+            raise QueryError(f"--sweep '{sweep}' holds no runs or jobs. Sweeps under '{root}': "
+                             f"{_sample(sweeps)}.")
+        runs = sel
+    if run is not None:
+        r_id = _resolve_under_root(root, run, "--run")
+        sel = [r for r in runs if r.run_id == r_id]
+        if not sel:
+            hint = (" It contains runs: use --sweep for a directory of jobs."
+                    if any(r.run_id.startswith(r_id + "/") for r in runs) else "")
+            raise QueryError(f"--run '{run}' is not a run or job directory.{hint} Runs: "
+                             f"{_sample([r.run_id for r in runs])}.")
+        runs = sel
+    return runs
+
+
+# ---- the runs table ---------------------------------------------------------------------------
+def _one_line(text: object, width: int = ERROR_WIDTH) -> str | None:
+    if text is None:
+        return None
+    lines = [ln.strip() for ln in str(text).strip().splitlines() if ln.strip()]
+    if not lines:
+        return None
+    # a traceback's informative line is its last one; otherwise the first line says it
+    line = lines[-1] if lines[0].startswith("Traceback") else lines[0]
+    if len(lines) > 1 and line == lines[0]:
+        line += " …"
+    return line if len(line) <= width else line[: width - 1] + "…"
+
+
+def _as_int(v: object) -> int | None:
+    if isinstance(v, bool) or v is None:
+        return None
+    if isinstance(v, int):
+        return v
+    if isinstance(v, float) and v.is_integer():
+        return int(v)
+    if isinstance(v, str) and v.strip().lstrip("-").isdigit():
+        return int(v)
+    return None
+
+
+def _status_row(r: RunDir, root: Path, warn: Warn) -> dict:
+    parts = r.run_id.split("/")
+    row: dict = {
+        "run_id": r.run_id, "experiment": parts[1] if len(parts) > 1 else None, "kind": r.kind,
+        "sweep": "/".join(parts[:-1]) if r.kind == "multirun" else None,
+        "job_num": _as_int(parts[-1]) if r.kind == "multirun" else None,
+        "status": None, "started_at": None, "finished_at": None, "runs": None,
+        "overrides": None, "error": None, "config_hash": None,
+    }
+    path = r.path / STATUS_FILE
+    if not path.is_file():
+        row["status"] = "unknown"
+        row["error"] = "no status.json"
+        return row
+    try:
+        st = json.loads(path.read_text())
+        if not isinstance(st, dict):
+            raise ValueError("not a JSON object")
+    except (OSError, ValueError) as e:
+        warn(f"skipping unreadable {path}: {_one_line(e)}")
+        row["status"] = "unknown"
+        row["error"] = f"unreadable status.json: {_one_line(e)}"
+        return row
+    overrides = st.get("overrides")
+    if isinstance(overrides, list):
+        overrides = " ".join(str(o) for o in overrides)
+    row.update({
+        "experiment": st.get("experiment") or row["experiment"],
+        "sweep": st.get("sweep", row["sweep"]),
+        "job_num": _as_int(st.get("job_num", row["job_num"])),
+        "status": st.get("status"), "started_at": st.get("started_at"),
+        "finished_at": st.get("finished_at"), "runs": _as_int(st.get("runs")),
+        "overrides": overrides if overrides is None else str(overrides),
+        "error": _one_line(st.get("error")), "config_hash": st.get("config_hash"),
+    })
+    for k in ("experiment", "sweep", "status", "started_at", "finished_at", "config_hash"):
+        if row[k] is not None:
+            row[k] = str(row[k])
+    return row
+
+
+def _runs_frame(runs: Sequence[RunDir], root: Path, warn: Warn) -> pl.DataFrame:
+    rows = [_status_row(r, root, warn) for r in runs]
+    df = pl.DataFrame(rows, schema=RUNS_COLUMNS) if rows else pl.DataFrame(schema=RUNS_COLUMNS)
+    return df.sort(["started_at", "run_id"], nulls_last=True)
+
+
+def runs_frame(root: Path | str = "artifacts", sweep: Path | str | None = None,
+               run: Path | str | None = None, *, warn: Warn | None = None) -> pl.DataFrame:
+    """The ``runs`` table (eager): one row per run/job, sorted by ``started_at``."""
+    root = Path(root)
+    return _runs_frame(_select_runs(root, sweep, run), root, warn or _default_warn)
+
+
+# ---- the Parquet tables -----------------------------------------------------------------------
+_INT_BITS = {pl.Int8: 8, pl.Int16: 16, pl.Int32: 32, pl.Int64: 64, pl.Int128: 128,
+             pl.UInt8: 8, pl.UInt16: 16, pl.UInt32: 32, pl.UInt64: 64}
+_SIGNED = {pl.Int8, pl.Int16, pl.Int32, pl.Int64, pl.Int128}
+_FLOATS = {pl.Float32, pl.Float64}
+
+
+def _scan_castable(src: pl.DataType, dst: pl.DataType) -> bool:
+    """Can ``scan_parquet(cast_options=_CAST)`` turn a file column of ``src`` into ``dst``?"""
+    if src == dst or src == pl.Null:
+        return True
+    s, d = src.base_type(), dst.base_type()
+    if s in _INT_BITS and d in _FLOATS:
+        return True                                          # integer_cast="allow-float"
+    if s in _INT_BITS and d in _INT_BITS:                    # integer_cast="upcast", lossless
+        if (s in _SIGNED) == (d in _SIGNED):
+            return _INT_BITS[s] <= _INT_BITS[d]
+        return s not in _SIGNED and _INT_BITS[s] < _INT_BITS[d]
+    return s == pl.Float32 and d == pl.Float64               # float_cast="upcast"
+
+
+def _cast_options() -> pl.ScanCastOptions:
+    with warnings.catch_warnings():          # "ScanCastOptions is considered unstable"
+        warnings.simplefilter("ignore")
+        return pl.ScanCastOptions(integer_cast=["upcast", "allow-float"], float_cast="upcast")
+
+
+def _cast_to(name: str, src: pl.DataType, dst: pl.DataType) -> pl.Expr:
+    col = pl.col(name)
+    if src.is_nested() and dst == pl.String:       # a list config leaf -> JSON text
+        text = (pl.struct(col.alias("v")).struct.json_encode()
+                .str.strip_prefix('{"v":').str.strip_suffix("}"))
+        return pl.when(col.is_null()).then(None).otherwise(text).alias(name)
+    return col.cast(dst, strict=False)
+
+
+@dataclass
+class _ParquetTable:
+    name: str
+    files: list[Path] = field(default_factory=list)
+    schemas: list[pl.Schema] = field(default_factory=list)
+
+    def add(self, path: Path, warn: Warn) -> None:
+        try:
+            schema = pl.read_parquet_schema(path)
+        except Exception as e:  # noqa: BLE001 - any unreadable footer: skip the file, keep going
+            warn(f"skipping corrupt or truncated {path}: {_one_line(e)}")
+            return
+        self.files.append(path)
+        self.schemas.append(schema)
+
+    def drop(self, bad: set[Path]) -> None:
+        keep = [i for i, f in enumerate(self.files) if f not in bad]
+        self.files = [self.files[i] for i in keep]
+        self.schemas = [self.schemas[i] for i in keep]
+
+    def target_schema(self, warn: Warn | None = None) -> pl.Schema:
+        """The superset of all files' columns, each at the supertype of its dtypes. Files whose
+        dtypes have no common supertype with the others (e.g. list vs float) are dropped."""
+        fixed = FIXED_COLUMNS[self.name]
+        union = pl.DataFrame(schema=fixed)
+        distinct: dict[tuple, pl.Schema] = {}
+        for s in self.schemas:
+            distinct.setdefault(tuple(s.items()), s)
+        bad: set[tuple] = set()
+        for key, s in distinct.items():
+            try:
+                union = pl.concat([union, pl.DataFrame(schema=s)], how="diagonal_relaxed")
+            except pl.exceptions.PolarsError as e:
+                bad.add(key)
+                for f, fs in zip(self.files, self.schemas):
+                    if tuple(fs.items()) == key and warn is not None:
+                        warn(f"skipping {f}: its column types clash with the other "
+                             f"{self.name} files ({_first_paragraph(str(e))})")
+        if bad:
+            self.drop({f for f, fs in zip(self.files, self.schemas) if tuple(fs.items()) in bad})
+        order = list(fixed) + sorted(c for c in union.columns if c not in fixed)
+        return pl.Schema({c: union.schema[c] for c in order})
+
+    def lazy(self, warn: Warn | None = None) -> pl.LazyFrame:
+        target = self.target_schema(warn)
+        if not self.files:
+            return pl.LazyFrame(schema=target)
+        fast: list[str] = []
+        slow: dict[tuple, list[str]] = {}
+        for f, s in zip(self.files, self.schemas):
+            if all(_scan_castable(dt, target[c]) for c, dt in s.items()):
+                fast.append(str(f))
+            else:
+                slow.setdefault(tuple(s.items()), []).append(str(f))
+        parts: list[pl.LazyFrame] = []
+        if fast:   # one scan for (nearly) everything: the fast path measured in the module doc
+            parts.append(pl.scan_parquet(fast, schema=target, missing_columns="insert",
+                                         cast_options=_cast_options(), glob=False,
+                                         hidden_file_prefix="."))
+        for key, files in slow.items():   # casts the scanner refuses (int -> str, list -> str)
+            have = dict(key)
+            lf = pl.scan_parquet(files, glob=False, hidden_file_prefix=".")
+            parts.append(lf.select([_cast_to(c, have[c], dt) if c in have
+                                    else pl.lit(None, dtype=dt).alias(c)
+                                    for c, dt in target.items()]))
+        return parts[0] if len(parts) == 1 else pl.concat(parts, how="vertical")
+
+    def validate(self, warn: Warn) -> bool:
+        """Read every file in full; drop (and warn about) those that fail. True if any failed."""
+        bad = set()
+        for f in self.files:
+            try:
+                pl.read_parquet(f)
+            except Exception as e:  # noqa: BLE001
+                warn(f"skipping corrupt {f}: {_one_line(e)}")
+                bad.add(f)
+        self.drop(bad)
+        return bool(bad)
+
+
+@dataclass
+class _Catalog:
+    """The selected run dirs; each Parquet table's footers are read on first use only."""
+    root: Path
+    run_dirs: list[RunDir]
+    warn: Warn
+    runs: pl.DataFrame
+    tables: dict[str, _ParquetTable] = field(default_factory=dict)
+
+    def table(self, name: str) -> _ParquetTable:
+        if name not in self.tables:
+            t = _ParquetTable(name)
+            for r in self.run_dirs:
+                p = r.path / TABLE_FILES[name]
+                if p.is_file():
+                    t.add(p, self.warn)
+            self.tables[name] = t
+        return self.tables[name]
+
+    def lazy(self, names: Iterable[str] = TABLE_NAMES) -> dict[str, pl.LazyFrame]:
+        return {n: self.runs.lazy() if n == "runs" else self.table(n).lazy(self.warn)
+                for n in names}
+
+
+def _catalog(root: Path | str, sweep: Path | str | None, run: Path | str | None,
+             warn: Warn) -> _Catalog:
+    root = Path(root)
+    runs = _select_runs(root, sweep, run)
+    return _Catalog(root, runs, warn, _runs_frame(runs, root, warn))
+
+
+def load_tables(root: Path | str = "artifacts", sweep: Path | str | None = None,
+                run: Path | str | None = None, *, warn: Warn | None = None) -> dict[str, pl.LazyFrame]:
+    """The tables ``summary``, ``metrics`` and ``runs`` as LazyFrames.
+
+    :param root: the artifacts directory (holds ``runs/`` and ``multirun/``).
+    :param sweep: restrict to the jobs of one sweep directory (relative to ``root``, to the
+        working directory, or absolute).
+    :param run: restrict to one run or job directory.
+    :param warn: called with a message for each skipped file; default ``warnings.warn``
+        with :class:`QueryWarning`.
+    :raises QueryError: missing/empty root, unknown sweep/run.
+    """
+    return _catalog(root, sweep, run, warn or _default_warn).lazy()
+
+
+# ---- SQL ----------------------------------------------------------------------------------------
+QUOTING_HELP = (
+    'Quote column names that contain dots or clash with SQL keywords in double quotes, e.g. '
+    '"filters.vsimm.t1_mu", "mc.runs", "window"; string literals take single quotes: '
+    "metric = 'position_rmse'.")
+
+
+def _first_paragraph(msg: str) -> str:
+    msg = str(msg).split("\n\nResolved plan")[0].split("\n\nThis error occurred")[0]
+    msg = re.sub(r";\s*valid columns: \[.*?\]", "", msg, flags=re.DOTALL)   # we list them per table
+    return " ".join(msg.split()).rstrip(".")
+
+
+def _schemas(tables: Mapping[str, pl.LazyFrame]) -> dict[str, pl.Schema]:
+    return {n: lf.collect_schema() for n, lf in tables.items()}
+
+
+def _columns_text(tables: Mapping[str, pl.LazyFrame], sql: str) -> str:
+    schemas = _schemas(tables)
+    named = [n for n in schemas if re.search(rf"\b{n}\b", sql, re.IGNORECASE)] or list(schemas)
+    return "; ".join(f"{n}: " + ", ".join(f'"{c}"' if not re.fullmatch(r"[a-z_][a-z0-9_]*", c) else c
+                                          for c in schemas[n]) for n in named)
+
+
+def _sql_error(e: Exception, sql: str, tables: Mapping[str, pl.LazyFrame]) -> QueryError:
+    msg = _first_paragraph(str(e))
+    low = msg.lower()
+    names = ", ".join(TABLE_NAMES)
+    if ("relation" in low and "not found" in low) or (
+            "table" in low and "not found" in low and "column" not in low):
+        return QueryError(f"SQL error: {msg}. The tables are: {', '.join(TABLE_NAMES)} "
+                          "(`mtt-query tables` lists their columns).")
+    if isinstance(e, pl.exceptions.ColumnNotFoundError) or ("column" in low and (
+            "not found" in low or "unable to find" in low or "no column" in low
+            or "struct column" in low)):
+        dotted = " A dotted name must be double-quoted as a whole." if "struct column" in low else ""
+        return QueryError(f"SQL error: {msg}.{dotted} {QUOTING_HELP} Columns: "
+                          f"{_columns_text(tables, sql)}.")
+    if "parser error" in low or isinstance(e, pl.exceptions.SQLSyntaxError):
+        return QueryError(f"SQL syntax error: {msg}. {QUOTING_HELP} In a shell, wrap the query "
+                          "in double quotes and escape the inner ones, or pass it on stdin "
+                          "(`mtt-query sql -`) or from a file (`--file q.sql`). "
+                          f"Tables: {names}.")
+    return QueryError(f"query failed: {msg}. Tables: {names} (`mtt-query tables` lists their "
+                      f"columns). {QUOTING_HELP}")
+
+
+def _execute(sql: str, tables: Mapping[str, pl.LazyFrame]) -> pl.DataFrame:
+    ctx = pl.SQLContext(frames=dict(tables), eager=False)
+    res = ctx.execute(sql, eager=False)
+    return res.collect() if isinstance(res, pl.LazyFrame) else res
+
+
+def _is_file_error(e: Exception) -> bool:
+    return isinstance(e, (pl.exceptions.ComputeError, OSError)) and (
+        "parquet" in str(e).lower() or isinstance(e, OSError))
+
+
+def _run_sql(sql: str, cat: _Catalog, warn: Warn) -> pl.DataFrame:
+    if not sql or not sql.strip():
+        raise QueryError(f"empty SQL query. Tables: {', '.join(TABLE_NAMES)}. {QUOTING_HELP}")
+    # read the footers only of the tables the query names (all of them if it names none)
+    names = [n for n in TABLE_NAMES if re.search(rf"\b{n}\b", sql, re.IGNORECASE)] or TABLE_NAMES
+    tables = cat.lazy(names)
+    try:
+        return _execute(sql, tables)
+    except pl.exceptions.PolarsError as e:
+        # A file whose footer reads fine but whose data pages are damaged fails only at
+        # collect time, without a file name: find it, skip it, run again.
+        if _is_file_error(e) and any([t.validate(warn) for t in cat.tables.values()]):
+            tables = cat.lazy(names)
+            try:
+                return _execute(sql, tables)
+            except pl.exceptions.PolarsError as e2:
+                raise _sql_error(e2, sql, tables) from None
+        raise _sql_error(e, sql, tables) from None
+
+
+def query(sql: str, root: Path | str = "artifacts", sweep: Path | str | None = None,
+          run: Path | str | None = None, *, warn: Warn | None = None) -> pl.DataFrame:
+    """Run ``sql`` (polars SQL) over ``summary``, ``metrics`` and ``runs``; return a DataFrame.
+
+    Example: ``query('SELECT variant, "filters.vsimm.t1_mu", AVG(value) FROM summary WHERE
+    metric = \\'acceleration_rmse_x\\' AND "window" = \\'all\\' GROUP BY ALL ORDER BY ALL')``.
+
+    :raises QueryError: with a user-facing message for bad input or a failing query.
+    """
+    warn = warn or _default_warn
+    return _run_sql(sql, _catalog(root, sweep, run, warn), warn)
+
+
+def tables_frame(tables: Mapping[str, pl.LazyFrame]) -> pl.DataFrame:
+    rows = [(n, c, str(dt)) for n, s in _schemas(tables).items() for c, dt in s.items()]
+    return pl.DataFrame(rows, schema={"table": pl.String, "column": pl.String, "dtype": pl.String},
+                        orient="row")
+
+
+# ---- output ---------------------------------------------------------------------------------
+def _plain(df: pl.DataFrame) -> pl.DataFrame:
+    """Nested columns (lists, structs, arrays) as JSON text, for csv/markdown."""
+    nested = [c for c, dt in df.schema.items() if dt.is_nested() or dt == pl.Object]
+    if not nested:
+        return df
+    return df.with_columns(pl.Series(c, [None if v is None else json.dumps(v, default=str)
+                                         for v in df[c].to_list()], dtype=pl.String)
+                           for c in nested)
+
+
+def _md_cell(v: object) -> str:
+    if v is None:
+        return ""
+    if isinstance(v, float):
+        if not math.isfinite(v):
+            return str(v)
+        text = format(v, ".6g")
+        return text + ".0" if v.is_integer() and text == str(int(v)) else text
+    text = str(v)
+    return text.replace("\\", "\\\\").replace("|", "\\|").replace("\r\n", "<br>").replace("\n", "<br>")
+
+
+def to_markdown(df: pl.DataFrame) -> str:
+    """A GitHub-flavoured Markdown table (``|`` escaped, newlines as ``<br>``, null empty,
+    floats to 6 significant digits, numeric columns right-aligned)."""
+    df = _plain(df)
+    header = [_md_cell(c) for c in df.columns]
+    rows = [[_md_cell(v) for v in row] for row in df.iter_rows()]
+    widths = [max([3, len(h)] + [len(r[i]) for r in rows]) for i, h in enumerate(header)]
+    numeric = [dt.is_numeric() for dt in df.dtypes]
+    sep = ["-" * (w - 1) + ":" if num else "-" * w for w, num in zip(widths, numeric)]
+
+    def line(cells: Iterable[str]) -> str:
+        return "| " + " | ".join(c.rjust(w) if num else c.ljust(w)
+                                 for c, w, num in zip(cells, widths, numeric)) + " |"
+    return "\n".join([line(header), "| " + " | ".join(sep) + " |"] + [line(r) for r in rows]) + "\n"
+
+
+def to_table(df: pl.DataFrame, max_rows: int | None = DEFAULT_MAX_ROWS) -> str:
+    """polars' box table with every column shown in full and up to ``max_rows`` rows."""
+    longest = max([8] + [len(c) for c in df.columns])      # headers are cut at this length too
+    for c, dt in df.schema.items():
+        if dt == pl.String and df.height:
+            longest = max(longest, df[c].str.len_chars().max() or 0)
+    with pl.Config(tbl_rows=-1 if not max_rows else max_rows, tbl_cols=-1,
+                   fmt_str_lengths=min(longest, 10_000), fmt_table_cell_list_len=-1,
+                   tbl_width_chars=65_000):     # must fit in u16, polars panics above
+        return str(df)
+
+
+def render(df: pl.DataFrame, fmt: str, max_rows: int | None = DEFAULT_MAX_ROWS) -> str:
+    if fmt == "csv":
+        return _plain(df).write_csv()
+    if fmt == "markdown":
+        return to_markdown(df)
+    return to_table(df, max_rows) + "\n"
+
+
+# ---- CLI ----------------------------------------------------------------------------------------
+EXAMPLE_SQL = ('SELECT variant, "filters.vsimm.t1_mu", AVG(value) FROM summary '
+               "WHERE metric = 'acceleration_rmse_x' AND \"window\" = 'all' "
+               "GROUP BY ALL ORDER BY ALL")
+
+DESCRIPTION = """\
+Query the pipeline's artifacts (runs/, multirun/ under --root) with SQL.
+
+Tables: summary (every summary.parquet: one row per variant x metric x window, plus one
+column per config leaf named by its dotted key), metrics (every metrics.parquet: per-step
+series), runs (one row per run/job from status.json; the `list` frame)."""
+
+SQL_EPILOG = """\
+quoting:
+  Column names with dots, or that are SQL keywords, go in double quotes: "filters.vsimm.t1_mu",
+  "mc.runs", "window". String literals go in single quotes: metric = 'position_rmse'.
+  In a POSIX shell, wrap the whole query in double quotes and escape the inner double quotes:
+    mtt-query sql "SELECT variant, \\"filters.vsimm.t1_mu\\", AVG(value) FROM summary
+                   WHERE metric = 'acceleration_rmse_x' AND \\"window\\" = 'all'
+                   GROUP BY ALL ORDER BY ALL"
+  or avoid shell quoting altogether with a here-document on stdin:
+    mtt-query sql - <<'SQL'
+    SELECT variant, "filters.vsimm.t1_mu", AVG(value) AS rmse FROM summary
+    WHERE metric = 'acceleration_rmse_x' AND "window" = 'all' GROUP BY ALL ORDER BY ALL
+    SQL
+  or put the query in a file: mtt-query sql --file q.sql
+
+more examples:
+  mtt-query sql --sweep multirun/ao_vsimm/2026-11-22_10-00-00 "SELECT metric, variant, \\
+      AVG(value) FROM summary WHERE status = 'ok' GROUP BY ALL ORDER BY ALL"
+  mtt-query sql "SELECT run_id, error FROM runs WHERE status = 'failed'"
+  mtt-query sql --format csv "SELECT * FROM metrics WHERE metric = 'position_rmse'" > pos.csv
+
+The SQL dialect is polars' (PostgreSQL-like; GROUP BY ALL, ORDER BY ALL, QUALIFY, ...)."""
+
+
+def _common(p: argparse.ArgumentParser, *, fmt: bool = True) -> None:
+    p.add_argument("--root", type=Path, default=Path("artifacts"),
+                   help="artifacts directory holding runs/ and multirun/ (default: artifacts)")
+    p.add_argument("--sweep", metavar="DIR",
+                   help="only the jobs of this sweep directory (relative to --root, e.g. "
+                        "multirun/<experiment>/<timestamp>, or a path)")
+    p.add_argument("--run", metavar="DIR",
+                   help="only this run or job directory (relative to --root, or a path)")
+    if fmt:
+        p.add_argument("--format", choices=["table", "csv", "markdown"], default="table",
+                       help="output format (default: table)")
+        p.add_argument("--max-rows", type=int, default=DEFAULT_MAX_ROWS, metavar="N",
+                       help=f"table format: rows shown before eliding the middle "
+                            f"(default {DEFAULT_MAX_ROWS}; 0 = all). csv/markdown print all.")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="mtt-query", description=DESCRIPTION,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter,
+                                     epilog=f"example:\n  mtt-query sql - <<'SQL'\n  {EXAMPLE_SQL}\n  SQL\n\n"
+                                            "`mtt-query sql -h` explains quoting.")
+    sub = parser.add_subparsers(dest="command", metavar="{list,tables,sql}", required=True)
+    p = sub.add_parser("list", help="runs and multirun jobs with their status (from status.json)",
+                       description="One row per run/job: run_id, experiment, kind, sweep, job_num, "
+                                   "status, started_at, runs, overrides, error (one line; the last "
+                                   "line of a traceback). "
+                                   "Sorted by started_at.")
+    _common(p)
+    p.add_argument("--experiment", metavar="NAME", help="only runs of this experiment")
+    p = sub.add_parser("tables", help="the registered tables, their columns and dtypes",
+                       description="The registered tables (summary, metrics, runs), their columns "
+                                   "and dtypes, as the sql command sees them.")
+    _common(p)
+    p = sub.add_parser("sql", help="run a SQL query over summary, metrics and runs",
+                       description="Run a polars SQL query over the tables summary, metrics "
+                                   "and runs.",
+                       epilog=SQL_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("query", nargs="?", help="the SQL query; '-' reads it from stdin")
+    p.add_argument("--file", "-f", type=Path, help="read the SQL query from this file")
+    _common(p)
+    return parser
+
+
+def _stderr_warn(msg: str) -> None:
+    print(f"mtt-query: warning: {msg}", file=sys.stderr)
+
+
+def _read_sql(args: argparse.Namespace) -> str:
+    if args.file is not None:
+        if args.query is not None:
+            raise QueryError("give the SQL query either as an argument or with --file, not both.")
+        try:
+            return args.file.read_text()
+        except OSError as e:
+            raise QueryError(f"cannot read the SQL file '{args.file}': {e.strerror}.") from None
+    if args.query is None:
+        raise QueryError(f'no SQL query given. Example: mtt-query sql "{EXAMPLE_SQL}" '
+                         "(see `mtt-query sql -h` for quoting).")
+    return sys.stdin.read() if args.query == "-" else args.query
+
+
+def _run(args: argparse.Namespace) -> pl.DataFrame:
+    if args.command == "list":
+        df = runs_frame(args.root, args.sweep, args.run, warn=_stderr_warn)
+        if args.experiment is not None:
+            names = sorted(set(df["experiment"].drop_nulls()))
+            df = df.filter(pl.col("experiment") == args.experiment)
+            if df.is_empty():
+                raise QueryError(f"no runs of experiment '{args.experiment}' under "
+                                 f"'{args.root}'. Experiments: {_sample(names)}.")
+        return df.select(LIST_COLUMNS)
+    if args.command == "tables":
+        return tables_frame(load_tables(args.root, args.sweep, args.run, warn=_stderr_warn))
+    sql = _read_sql(args)
+    return _run_sql(sql, _catalog(args.root, args.sweep, args.run, _stderr_warn), _stderr_warn)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of ``mtt-query`` / ``python -m pipeline.query``. Returns the exit code:
+    0 on success, 2 on bad input (message on stderr, no traceback)."""
+    args = build_parser().parse_args(argv)   # argparse itself exits 2 on bad options
+    try:
+        df = _run(args)
+        sys.stdout.write(render(df, args.format, args.max_rows))
+        sys.stdout.flush()
+    except QueryError as e:
+        print(f"mtt-query: error: {e}", file=sys.stderr)
+        return 2
+    except BrokenPipeError:                  # `mtt-query ... | head`
+        try:
+            sys.stdout = open(os.devnull, "w")  # noqa: SIM115 - silence the flush at exit
+        except OSError:
+            pass
+        return 0
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
