@@ -59,12 +59,13 @@ def stage_key(stage: str, config: Any, inputs: tuple[str, ...] = ()) -> str:
                         "version": package_version(), "schema": SCHEMA_VERSION})
 
 
-def atomic_write_parquet(df: pl.DataFrame, path: Path, metadata: Mapping[str, str] | None = None) -> None:
+def _atomic_write(path: Path, write, binary: bool = True) -> None:
+    """Write through a hidden temp file in the target directory, fsync, then rename over ``path``."""
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
-        with os.fdopen(fd, "wb") as f:
-            df.write_parquet(f, metadata=dict(metadata or {}))
+        with os.fdopen(fd, "wb" if binary else "w") as f:
+            write(f)
             f.flush()
             os.fsync(f.fileno())
         os.chmod(tmp, FILE_MODE)
@@ -73,22 +74,14 @@ def atomic_write_parquet(df: pl.DataFrame, path: Path, metadata: Mapping[str, st
         if os.path.exists(tmp):
             os.unlink(tmp)
         raise
+
+
+def atomic_write_parquet(df: pl.DataFrame, path: Path, metadata: Mapping[str, str] | None = None) -> None:
+    _atomic_write(path, lambda f: df.write_parquet(f, metadata=dict(metadata or {})))
 
 
 def atomic_write_text(text: str, path: Path) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w") as f:
-            f.write(text)
-            f.flush()
-            os.fsync(f.fileno())
-        os.chmod(tmp, FILE_MODE)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    _atomic_write(path, lambda f: f.write(text), binary=False)
 
 
 def read_table(path: Path) -> tuple[pl.DataFrame, dict[str, str]]:

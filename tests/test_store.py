@@ -1,0 +1,44 @@
+"""Atomic writes and table round trips."""
+
+from __future__ import annotations
+
+import numpy as np
+import polars as pl
+import pytest
+
+from pipeline import schemas
+from pipeline.store import atomic_write_parquet
+from tests.conftest import scenario
+
+
+def test_an_interrupted_write_leaves_the_previous_file_and_no_temp(tmp_path, monkeypatch):
+    path = tmp_path / "truth.parquet"
+    atomic_write_parquet(pl.DataFrame({"a": [1, 2]}), path)
+    original = path.read_bytes()
+
+    def dies_half_way(self, f, **kwargs):
+        f.write(b"PAR1 half a file")
+        raise KeyboardInterrupt   # the user pressed Ctrl-C during the write
+
+    monkeypatch.setattr(pl.DataFrame, "write_parquet", dies_half_way)
+    with pytest.raises(KeyboardInterrupt):
+        atomic_write_parquet(pl.DataFrame({"a": [3]}), path)
+    assert path.read_bytes() == original
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["truth.parquet"]
+
+
+def test_truth_round_trips_through_its_table():
+    truth = scenario("ao_vsimm_s2", steps=20).generate(3, 4)
+    df, meta = schemas.truth_to_frame(truth)
+    assert df.columns[:4] == ["run", "step", "time", "target"] and df.height == 3 * 21
+    back = schemas.truth_from_frame(df, meta)
+    np.testing.assert_array_equal(back.state, truth.state)
+    np.testing.assert_array_equal(back.labels["acceleration"], truth.labels["acceleration"])
+    assert back.state_names == truth.state_names
+
+
+def test_a_table_with_missing_rows_is_refused():
+    truth = scenario("ao_vsimm_s1", steps=10).generate(2, 1)
+    df, meta = schemas.truth_to_frame(truth)
+    with pytest.raises(schemas.TableError, match="do not fill the run x step x target grid"):
+        schemas.truth_from_frame(df.filter(~((pl.col("run") == 1) & (pl.col("step") == 3))), meta)
