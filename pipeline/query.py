@@ -4,7 +4,7 @@ Three tables are registered, all lazy:
 
 ``summary``
     every ``summary.parquet`` of every single run (``<root>/runs/<experiment>/<timestamp>/``)
-    and multirun job (``<root>/multirun/<experiment>/<timestamp>/<job_num>/``), failed jobs
+    and multirun job (``<root>/multirun/<timestamp>/<job_num>/``), failed jobs
     included (one row, ``status = 'failed'``). Config leaves are columns named by their dotted
     key (``"filters.vsimm.t1_mu"``). Different experiments carry different config columns and
     a swept key may be int in one job and float in another: the table is the union of all
@@ -113,7 +113,7 @@ class RunDir:
 
 
 # depth below runs/ resp. multirun/ at which a run dir lacking status.json is still recognised
-_EXPECTED_DEPTH = {"runs": 2, "multirun": 3}
+_EXPECTED_DEPTH = {"runs": 2, "multirun": 2}
 _KIND = {"runs": "run", "multirun": "multirun"}
 
 
@@ -133,7 +133,7 @@ def discover_runs(root: Path) -> list[RunDir]:
     """Run/job directories under ``root/runs`` and ``root/multirun``, sorted by path.
 
     A directory is a run if it holds ``status.json``, or if it sits at the layout's depth
-    (``runs/<exp>/<ts>``, ``multirun/<exp>/<ts>/<job>``) and holds ``summary.parquet`` or
+    (``runs/<exp>/<ts>``, ``multirun/<ts>/<job>``) and holds ``summary.parquet`` or
     ``metrics.parquet``. Hidden directories are never entered; run directories are not
     descended into (a sweep's aggregate ``summary.parquet`` next to its jobs is not a run).
     """
@@ -187,7 +187,7 @@ def _select_runs(root: Path, sweep: Path | str | None, run: Path | str | None) -
         raise QueryError(
             f"no runs found under the artifacts root '{root}': expected "
             "runs/<experiment>/<timestamp>/status.json or "
-            "multirun/<experiment>/<timestamp>/<job_num>/status.json. "
+            "multirun/<timestamp>/<job_num>/status.json. "
             f"The root holds: {_sample(entries)}. Pass --root DIR to point elsewhere.")
     if sweep is not None:
         s = _resolve_under_root(root, sweep, "--sweep")
@@ -635,7 +635,7 @@ quoting:
   or put the query in a file: mtt-query sql --file q.sql
 
 more examples:
-  mtt-query sql --sweep multirun/ao_vsimm/2026-11-22_10-00-00 "SELECT metric, variant, \\
+  mtt-query sql --sweep multirun/2026-11-22_10-00-00_000000 "SELECT metric, variant, \\
       AVG(value) FROM summary WHERE status = 'ok' GROUP BY ALL ORDER BY ALL"
   mtt-query sql "SELECT run_id, error FROM runs WHERE status = 'failed'"
   mtt-query sql --format csv "SELECT * FROM metrics WHERE metric = 'position_rmse'" > pos.csv
@@ -648,7 +648,7 @@ def _common(p: argparse.ArgumentParser, *, fmt: bool = True) -> None:
                    help="artifacts directory holding runs/ and multirun/ (default: artifacts)")
     p.add_argument("--sweep", metavar="DIR",
                    help="only the jobs of this sweep directory (relative to --root, e.g. "
-                        "multirun/<experiment>/<timestamp>, or a path)")
+                        "multirun/<timestamp>, or a path)")
     p.add_argument("--run", metavar="DIR",
                    help="only this run or job directory (relative to --root, or a path)")
     if fmt:

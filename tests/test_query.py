@@ -1,6 +1,6 @@
 """Tests for ``pipeline.query`` (the ``mtt-query`` CLI and its Python API) on a fake artifacts tree.
 
-The tree follows the writer conventions: ``runs/<exp>/<ts>/`` and ``multirun/<exp>/<ts>/<job>/``
+The tree follows the writer conventions: ``runs/<exp>/<ts>/`` and ``multirun/<ts>/<job>/``
 with ``status.json``, ``summary.parquet`` and ``metrics.parquet``; hidden temp files
 (``.summary.parquet.<random>.tmp``), ``*.rejected`` and ``cache/`` must never be read.
 """
@@ -19,7 +19,7 @@ import pytest
 from pipeline import query as q
 from pipeline.query import QueryError, QueryWarning, load_tables, main, query
 
-SWEEP = "multirun/ao_vsimm_sweep/2026-11-21_08-00-00"
+SWEEP = "multirun/2026-11-21_08-00-00_000000"
 RUN_CV = "runs/cv_turn/2026-11-20_09-00-00"
 RUN_AO = "runs/ao_vsimm_s1/2026-11-20_10-00-00"
 RUN_TRUNC = "runs/cv_turn/2026-11-22_12-00-00"
@@ -173,7 +173,7 @@ def test_list_shows_all_runs_including_failed(root, capsys):
 def test_list_table_format_and_experiment_filter(root, capsys):
     code, out, _ = run_cli(capsys, "list", "--root", str(root), "--experiment", "ao_vsimm_sweep")
     assert code == 0
-    assert out.count("multirun/ao_vsimm_sweep/") >= 3 and RUN_CV not in out
+    assert out.count("multirun/2026-11-21_08-00-00_000000/") >= 3 and RUN_CV not in out
     assert "numpy.linalg.LinAlgError: Matrix is not positive definite" in out   # not truncated
     assert "experiment=ao_vsimm_sweep filters.vsimm.t1_mu=0.5" in out
 
