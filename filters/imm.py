@@ -102,6 +102,24 @@ def combine(s: ModeSet) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 
 @dataclass(frozen=True)
+class GroupState:
+    """Which model groups each run is running (variable-structure IMMs).
+
+    old : (R,) the current group M_o (-1 for a fixed-structure IMM)
+    new : (R,) the activated group M_a while the union M_o U M_a runs, else -1
+    log_lr : (R,) log of the sequential likelihood ratio t^L accumulated since activation (eq 8)
+    """
+
+    old: np.ndarray
+    new: np.ndarray
+    log_lr: np.ndarray
+
+    @classmethod
+    def start(cls, runs: int, group: int) -> "GroupState":
+        return cls(np.full(runs, group), np.full(runs, -1), np.zeros(runs))
+
+
+@dataclass(frozen=True)
 class LinearModelBank:
     """What the IMM cycle needs of the models: x' = F x + offset_m, noise Q, measurement H.
 
@@ -286,7 +304,9 @@ class _IMMBase:
     def _initial_groups(self) -> int:
         return -1
 
-    def _step(self, prior: ModeSet, z: np.ndarray, noise: np.ndarray, detected) -> tuple[ModeSet, np.ndarray]:
+    def _step(self, prior: ModeSet, groups: GroupState, z: np.ndarray, noise: np.ndarray, detected
+              ) -> tuple[ModeSet, GroupState, np.ndarray]:
+        """One scan: returns the posteriors, the group state and the models evaluated per run."""
         raise NotImplementedError
 
     # ---- driver ------------------------------------------------------------------------
@@ -331,18 +351,18 @@ class _IMMBase:
         detected = measurements.detected
 
         s = self._start(measurements)
-        self._reset_logic(R)
+        groups = GroupState.start(R, self._initial_groups())
         rows = np.arange(R)[:, None]
         for k in range(1, K):
             if k > 1:
                 noise_k = noise[:, k] if noise.ndim == 4 else noise
-                s, evaluated[:, k] = self._step(s, z[:, k], noise_k, detected[:, k])
+                s, groups, evaluated[:, k] = self._step(s, groups, z[:, k], noise_k, detected[:, k])
             x, P, mu = combine(s)
             state_out[:, k], cov_out[:, k] = x, P
             full = np.zeros((R, M + 1))
             full[rows, np.where(s.valid, s.model_index, M)] = mu
             mode_prob[:, k] = full[:, :M]
-            active[:, k], candidate[:, k] = self._groups_now()
+            active[:, k], candidate[:, k] = groups.old, groups.new
         elapsed = time.perf_counter() - started
         extras = {
             "mode_probabilities": mode_prob,
@@ -353,15 +373,8 @@ class _IMMBase:
         }
         return TrackEstimate(measurements.time, state_out, cov_out, extras, elapsed)
 
-    def _reset_logic(self, runs: int) -> None:
-        self._old = np.full(runs, self._initial_groups())
-        self._new = np.full(runs, -1)
-
-    def _groups_now(self) -> tuple[np.ndarray, np.ndarray]:
-        return self._old, self._new
-
     # ---- shared pieces of the variable-structure logic ---------------------------------
-    def _activation(self, result: ModeSet, eligible: np.ndarray) -> np.ndarray:
+    def _activation(self, result: ModeSet, current: np.ndarray, eligible: np.ndarray) -> np.ndarray:
         """Activation logic (seed sec 4.1, notes 4.4): the max-likelihood model of M_o is the centre
         of another group and its probability exceeds t_a -> that group. Returns (R,) group or -1."""
         mu = result.probabilities()
@@ -369,7 +382,7 @@ class _IMMBase:
         rows = np.arange(best.size)
         best_model = result.model_index[rows, best]
         target = self.centre_group[np.where(best_model >= 0, best_model, -1)]
-        fire = eligible & (target >= 0) & (target != self._old) & (mu[rows, best] > self.activation_threshold)
+        fire = eligible & (target >= 0) & (target != current) & (mu[rows, best] > self.activation_threshold)
         return np.where(fire, target, -1)
 
     def _activate(self, prior: ModeSet, result: ModeSet, z, noise, detected, target: np.ndarray
@@ -414,9 +427,9 @@ class FSIMM(_IMMBase):
             log_mu = np.log(self.initial_mode_probabilities)[s.model_index]
         return replace(s, log_predicted=log_mu, log_weight=log_mu)
 
-    def _step(self, prior, z, noise, detected):
+    def _step(self, prior, groups, z, noise, detected):
         s = imm_cycle(prior, prior.model_index, z, noise, self.bank, self._tpm_padded, detected)
-        return s, s.valid.sum(axis=1)
+        return s, groups, s.valid.sum(axis=1)
 
 
 class AOVSIMM(_IMMBase):
@@ -442,17 +455,17 @@ class AOVSIMM(_IMMBase):
     def _initial_groups(self) -> int:
         return self.initial_group
 
-    def _step(self, prior, z, noise, detected):
+    def _step(self, prior, groups, z, noise, detected):
         result = imm_cycle(prior, prior.model_index, z, noise, self.bank, self._tpm_padded, detected)
         evaluated = result.valid.sum(axis=1)
-        target = self._activation(result, np.ones(len(self._old), dtype=bool))
+        target = self._activation(result, groups.old, np.ones(len(groups.old), dtype=bool))
         if (target < 0).all():
-            return result, evaluated
+            return result, groups, evaluated
         union, added = self._activate(prior, result, z, noise, detected, target)
         fire = target >= 0
         keep = np.where(fire[:, None], self._in_group(union, target), union.valid)   # discard M_o \ M_a
-        self._old = np.where(fire, target, self._old)
-        return drop_slots(union, keep), evaluated + added
+        groups = replace(groups, old=np.where(fire, target, groups.old))
+        return drop_slots(union, keep), groups, evaluated + added
 
 
 class VSIMM(_IMMBase):
@@ -502,30 +515,27 @@ class VSIMM(_IMMBase):
     def _initial_groups(self) -> int:
         return self.initial_group
 
-    def _reset_logic(self, runs: int) -> None:
-        super()._reset_logic(runs)
-        self._log_lr = np.zeros(runs)   # log of the sequential likelihood ratio t^L since k0
-
-    def _step(self, prior, z, noise, detected):
+    def _step(self, prior, groups, z, noise, detected):
         result = imm_cycle(prior, prior.model_index, z, noise, self.bank, self._tpm_padded, detected)
         evaluated = result.valid.sum(axis=1)
-        in_union = self._new >= 0
-        target = self._activation(result, ~in_union)
+        in_union = groups.new >= 0
+        target = self._activation(result, groups.old, ~in_union)
         fire = target >= 0
         if fire.any():
             result, added = self._activate(prior, result, z, noise, detected, target)
             evaluated = evaluated + added
-            self._new = np.where(fire, target, self._new)
-            self._log_lr = np.where(fire, 0.0, self._log_lr)
+            groups = replace(groups, new=np.where(fire, target, groups.new),
+                             log_lr=np.where(fire, 0.0, groups.log_lr))
             in_union = in_union | fire
         if not in_union.any():
-            return result, evaluated
-        return self._terminate(result, in_union), evaluated
+            return result, groups, evaluated
+        result, groups = self._terminate(result, groups, in_union)
+        return result, groups, evaluated
 
-    def _terminate(self, s: ModeSet, in_union: np.ndarray) -> ModeSet:
+    def _terminate(self, s: ModeSet, groups: GroupState, in_union: np.ndarray) -> tuple[ModeSet, GroupState]:
         """Termination logic (eq 8, notes 4.5) for the runs whose union is running."""
-        in_old = self._in_group(s, self._old)
-        in_new = self._in_group(s, self._new)
+        in_old = self._in_group(s, groups.old)
+        in_new = self._in_group(s, groups.new)
         mu = s.probabilities()
         with np.errstate(divide="ignore", invalid="ignore"):
             log_mu_old = np.log((mu * in_old).sum(axis=1))
@@ -539,17 +549,17 @@ class VSIMM(_IMMBase):
             log_t_mu, step_lr = log_mu_new - log_mu_old, log_L_new - log_L_old
         else:
             log_t_mu, step_lr = log_mu_old - log_mu_new, log_L_old - log_L_new
-        self._log_lr = np.where(in_union, self._log_lr + step_lr, self._log_lr)
-        low = in_union & (log_t_mu < self.log_t1_mu) & (self._log_lr < self.log_t1_L)
-        high = in_union & (log_t_mu > self.log_t2_mu) & (self._log_lr > self.log_t2_L)
+        log_lr = np.where(in_union, groups.log_lr + step_lr, groups.log_lr)
+        low = in_union & (log_t_mu < self.log_t1_mu) & (log_lr < self.log_t1_L)
+        high = in_union & (log_t_mu > self.log_t2_mu) & (log_lr > self.log_t2_L)
         if self.ratio == "old_new":
             end_old, end_new = low, high
         else:
             end_new, end_old = low, high
-        if not (end_old.any() or end_new.any()):
-            return s
+        ended = end_old | end_new
+        groups = GroupState(old=np.where(end_old, groups.new, groups.old), new=np.where(ended, -1, groups.new),
+                            log_lr=np.where(ended, 0.0, log_lr))
+        if not ended.any():
+            return s, groups
         keep = np.where(end_new[:, None], in_old, np.where(end_old[:, None], in_new, s.valid))
-        self._old = np.where(end_old, self._new, self._old)
-        self._new = np.where(end_old | end_new, -1, self._new)
-        self._log_lr = np.where(end_old | end_new, 0.0, self._log_lr)
-        return drop_slots(s, keep)
+        return drop_slots(s, keep), groups

@@ -163,3 +163,26 @@ def test_vsimm_rejects_bad_settings(models13):
         VSIMM(models13, t1_mu=0.95, t2_mu=0.9)
     with pytest.raises(ValueError, match="group 'M9'"):
         AOVSIMM(models13, initial_group="M9")
+
+
+def test_termination_readings_on_a_hand_worked_union(models13):
+    """Union M1 (old) + M2 (new), all evidence on m10 (only in M2): mu(M1) ~ 0.005, mu(M2) ~ 0.997,
+    L(M1) = 1e-3, L(M2) ~ 0.2. 'printed' (old/new, printed rules) ends the better group M2 -- the
+    paper's S2 failure mode; 'new_old' and 'old_new' end M1. Evidence split evenly keeps the union."""
+    from filters.imm import GroupState
+
+    union = np.array([[0, 1, 2, 3, 4, 9, 5, 8]])            # M1 = m1..m5, plus m10, m6, m9 of M2
+    A = union.shape[1]
+    log_pred = np.full((1, A), np.log(1 / A))
+    log_lik = np.where(union == 9, 0.0, np.log(1e-3))
+    s = ModeSet(union, np.zeros((1, A, 4)), np.broadcast_to(np.eye(4), (1, A, 4, 4)).copy(), log_pred, log_lik,
+                log_pred + log_lik)
+    start = GroupState(old=np.array([0]), new=np.array([1]), log_lr=np.zeros(1))
+    for ratio, survivor in (("printed", 0), ("new_old", 1), ("old_new", 1)):
+        kept, groups = VSIMM(models13, ratio=ratio)._terminate(s, start, np.array([True]))
+        assert groups.old[0] == survivor and groups.new[0] == -1, ratio
+        assert set(kept.model_index[0][kept.valid[0]]) == set(models13.groups[survivor]), ratio
+
+    even = ModeSet(union, s.x, s.P, log_pred, np.zeros((1, A)), log_pred)
+    kept, groups = VSIMM(models13)._terminate(even, start, np.array([True]))
+    assert groups.new[0] == 1 and kept.valid.sum() == A     # t^L = 1 is not above t2^L = 1: keep the union
