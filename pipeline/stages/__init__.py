@@ -1,0 +1,1 @@
+"""Stage functions: pure functions of in-memory arrays; the runner does the I/O and caching."""

@@ -1,0 +1,20 @@
+"""Track: what the filters see of the detections.
+
+Each variant is an estimator built from its config node (``_target_``) with
+``run(MeasurementSeries) -> TrackEstimate``; every variant gets the same series.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from filters.base import MeasurementSeries
+from pipeline.data import Detections
+
+
+def measurement_series(det: Detections, slot: int = 0) -> MeasurementSeries:
+    """The filters' view of one detection slot (single-target, single-sensor studies)."""
+    cov = det.noise_covariance[:, :, slot]
+    constant = np.allclose(cov, cov[:1, :1])
+    return MeasurementSeries(det.time, det.z[:, :, slot], cov[0, 0] if constant else cov,
+                             det.detected[:, :, slot], det.sensor)
