@@ -150,10 +150,11 @@ def _sweep_summaries(root: Path) -> pl.DataFrame:
 def test_multirun_sweep_yields_one_summary_per_job_with_the_swept_value(tmp_path):
     proc = cli(tmp_path, "-m", "filters.vsimm.t1_mu=0.8,0.85", "mc.runs=3", "scenario.steps=60", "record.enabled=false")
     assert proc.returncode == 0, proc.stderr
-    df = _sweep_summaries(tmp_path)
-    rows = df.filter((pl.col("variant") == "VSIMM") & (pl.col("metric") == "acceleration_rmse_x")
-                     & (pl.col("window") == "all"))
-    assert sorted(rows["filters.vsimm.t1_mu"].to_list()) == [0.8, 0.85]
+    from pipeline.query import query
+    rows = query("""SELECT "filters.vsimm.t1_mu" AS t1_mu, value FROM summary
+                    WHERE variant = 'VSIMM' AND metric = 'acceleration_rmse_x' AND "window" = 'all'
+                    ORDER BY t1_mu""", root=tmp_path)
+    assert rows["t1_mu"].to_list() == [0.8, 0.85] and rows["value"].is_finite().all()
     (sweep,) = (tmp_path / "multirun").iterdir()
     assert sorted(p.name for p in sweep.iterdir() if p.is_dir()) == ["0", "1"]
     assert (sweep / "sweep_summary.parquet").is_file()
