@@ -176,3 +176,49 @@ class AccelerationModelSet:
         if name not in self.group_names:
             raise ValueError(f"group {name!r} is not one of {list(self.group_names)}")
         return self.group_names.index(name)
+
+
+# ---- Singer (1970) model with an input level (seed 000 eqs 1-2; literature notes 1.2-1.3) -------
+def singer_transition(dt: float, tau: float) -> np.ndarray:
+    """Per-axis F for (p, v, a): exact discretisation of a_dot = -a/tau + w (seed 000 eq 2)."""
+    e = np.exp(-dt / tau)
+    return np.array([[1.0, dt, tau * tau * (-1.0 + dt / tau + e)],
+                     [0.0, 1.0, tau * (1.0 - e)],
+                     [0.0, 0.0, e]])
+
+
+def singer_input_gain(dt: float, tau: float) -> np.ndarray:
+    """Per-axis G of eq 2: how a constant input level u drives (p, v, a) over one step.
+
+    a_dot = -(a - u)/tau + w, so G = integral of e^{As} [0, 0, 1/tau]' ds = g_CA - F B with
+    g_CA = (dt^2/2, dt, 1) (notes 1.3): under a constant level the motion is constant acceleration.
+    """
+    F = singer_transition(dt, tau)
+    return np.array([dt * dt / 2.0, dt, 1.0]) - F[:, 2]
+
+
+def singer_process_noise(dt: float, tau: float, sigma_m: float) -> np.ndarray:
+    """Per-axis Q of the Singer model, q = 2 sigma_m^2 / tau (Singer 1970; notes 1.2).
+
+    For alpha*dt < 1e-3 the closed form cancels catastrophically; a Van Loan matrix exponential
+    is used there instead.
+    """
+    a = 1.0 / tau
+    aT = a * dt
+    q = 2.0 * a * sigma_m**2
+    if aT < 1e-3:
+        from scipy.linalg import expm
+        A = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [0.0, 0.0, -a]])
+        L = np.array([[0.0], [0.0], [1.0]])
+        M = np.block([[-A, q * L @ L.T], [np.zeros((3, 3)), A.T]]) * dt
+        E = expm(M)
+        F = E[3:, 3:].T
+        return F @ E[:3, 3:]
+    e1, e2 = np.exp(-aT), np.exp(-2.0 * aT)
+    q11 = (1 - e2 + 2 * aT + 2 * aT**3 / 3 - 2 * aT**2 - 4 * aT * e1) / (2 * a**5)
+    q12 = (e2 + 1 - 2 * e1 + 2 * aT * e1 - 2 * aT + aT**2) / (2 * a**4)
+    q13 = (1 - e2 - 2 * aT * e1) / (2 * a**3)
+    q22 = (4 * e1 - 3 - e2 + 2 * aT) / (2 * a**3)
+    q23 = (e2 + 1 - 2 * e1) / (2 * a**2)
+    q33 = (1 - e2) / (2 * a)
+    return q * np.array([[q11, q12, q13], [q12, q22, q23], [q13, q23, q33]])

@@ -1,0 +1,551 @@
+"""Modified input estimation (MIE) with pseudo-residuals on a Singer-type tracking filter (seed 000).
+
+Two base filters, both batched over Monte Carlo runs:
+
+- ``InertialMIE`` (filters A and A-full): a coupled 9-state Kalman filter in inertial Cartesian
+  coordinates on converted measurements with their full covariance R_I = J R_p J' (notes 2.1);
+  the MIE works with full 3x3 matrices.
+- ``LOSMIE`` (filters B and C): the decoupled tracking filter in line-of-sight coordinates
+  (eqs 3-16): three independent per-axis 3-state filters, the frame re-pointed at the predicted
+  position every scan; the MIE is computed per axis with scalars (eq 23's decoupling), which is
+  where the saving is.
+
+State layout inside: (R, axis, kinematic) with kinematic = (p, v, a); outputs are inertial,
+ordered (x, y, z, vx, vy, vz, ax, ay, az). The radar is at the origin.
+
+MIE per scan k (notes 2.4, A-H): l onset hypotheses n in [max(k - l - N_id + 1, k_c), k - N_id]
+over the data window k - l - N_id + 2..k (spec 000: l = 5 candidate onset times); innovations score the samples i <= n, pseudo-residuals (eq 26) the samples i > n;
+the input estimate (eq 28) is the new absolute level, L(n) (eq 29) picks n_hat, the test (eq 31)
+compares the level change with its covariance (eq 32, sandwich form with eq 33's correlations),
+and a detection compensates state (eq 34), covariance (eq 37, with M Cov M', the printed inverse
+is a typo), level (eq 38) and, in the LOS filter, re-points the frame (eqs 39-44).
+
+Closed-loop stability (spec 000, designed here): implemented literally, the detect-compensate
+loop re-detects a sign-flipped correction every N_id steps and runs away. Two changes stop it:
+
+1. the test re-arms only after ``rearm_after`` (default l = 5) scans of new data since the last
+   compensation k_c, and hypotheses never reach back before k_c;
+2. the old level is not treated as exact in eq 31: its estimate carries the covariance Sigma_u of
+   the compensation that set it (rotated with the frame), and the test uses
+   Cov(u_hat - u_old) = Sigma_u(n_hat) + Sigma_old. This neglects the correlation between the
+   old level's error and the compensated velocity's error (both come from the same estimate; the
+   compensated velocity's own uncertainty is already in P through eq 37, so it enters S_n(i)).
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Literal
+
+import numpy as np
+
+from filters.base import MeasurementSeries, TrackEstimate
+from filters.coordinates import (converted_covariance, line_of_sight_angles, los_noise_variances, los_rotation,
+                                 polar_to_cartesian)
+from filters.models import singer_input_gain, singer_process_noise, singer_transition
+
+# (axis, kinematic) -> inertial output order (x, y, z, vx, vy, vz, ax, ay, az)
+_KIN_MAJOR = [a * 3 + kin for kin in range(3) for a in range(3)]
+
+
+class _MIEBase:
+    name: str
+
+    def __init__(self, name: str, tau: float, sigma_m: float, window: int, min_samples: int, threshold: float,
+                 rearm_after: int | None, level_uncertainty: bool, compensate: bool) -> None:
+        if not tau > 0:
+            raise ValueError(f"tau: {tau} must be > 0 s")
+        if not sigma_m > 0:
+            raise ValueError(f"sigma_m: {sigma_m} must be > 0 m/s^2")
+        if not (isinstance(window, int) and isinstance(min_samples, int) and 1 <= min_samples <= window):
+            raise ValueError(f"window, min_samples: need integers with 1 <= min_samples <= window, "
+                             f"got window={window}, min_samples={min_samples}")
+        if not threshold > 0:
+            raise ValueError(f"threshold: {threshold} must be > 0 (a chi-square quantile)")
+        rearm = window + min_samples - 1 if rearm_after is None else rearm_after
+        if not (isinstance(rearm, int) and rearm >= min_samples):
+            raise ValueError(f"rearm_after: {rearm_after} must be an integer >= min_samples ({min_samples})")
+        self.name = name
+        self.tau, self.sigma_m = float(tau), float(sigma_m)
+        self.window, self.min_samples = window, min_samples
+        self.threshold = float(threshold)
+        self.rearm_after = rearm
+        self.level_uncertainty = bool(level_uncertainty)
+        self.compensate = bool(compensate)
+
+    def _model(self, dt: float) -> None:
+        self.F = singer_transition(dt, self.tau)
+        self.Q = singer_process_noise(dt, self.tau, self.sigma_m)
+        self.G = singer_input_gain(dt, self.tau)
+        self.dt = dt
+
+    @staticmethod
+    def _checked(measurements: MeasurementSeries) -> tuple[np.ndarray, np.ndarray, float]:
+        z = measurements.z
+        if z.ndim != 3 or z.shape[-1] != 3:
+            raise ValueError(f"measurements.z: shape {z.shape}; expected (runs, scans, 3) range/azimuth/elevation")
+        if z.shape[1] < 2:
+            raise ValueError("measurements: two-point initialisation needs at least 2 scans")
+        if not measurements.detected.all():
+            raise ValueError("measurements: missed detections are not supported by the MIE filters")
+        dts = np.diff(measurements.time)
+        if not np.allclose(dts, dts[0]):
+            raise ValueError("measurements.time: the MIE filters need a constant scan period")
+        noise = np.asarray(measurements.noise_covariance)
+        if noise.ndim != 2:
+            noise = noise.reshape(-1, 3, 3)[0]
+        return z, np.diag(noise).copy(), float(dts[0])
+
+    @property
+    def _span(self) -> int:
+        """Scans in the data window: the earliest of the l onset hypotheses sees all of them as pseudo-residuals."""
+        return self.window + self.min_samples - 1
+
+    def _hypotheses(self, k: int) -> list[int]:
+        """Onset offsets d = k - n: the l = ``window`` candidate onset times n in [k - l - N_id + 1, k - N_id]
+        (spec 000: "window l = 5 candidate onset times, N_id = 3 minimum samples"). Every hypothesis
+        scores the same data window k - d_max + 1..k (innovations up to n, pseudo-residuals after),
+        so the scores compare. k_c is applied per run."""
+        return [d for d in range(self._span, self.min_samples - 1, -1) if k - d >= 1]
+
+
+class LOSMIE(_MIEBase):
+    """Filters B and C: LOS decoupled tracking filter + per-axis modified input estimation.
+
+    ``test``: ``pooled`` (B) sums the three per-axis statistics against chi2(3) with one onset
+    time n_hat for all axes; ``per_axis`` (C) tests, picks n_hat, and compensates each LOS axis on
+    its own against chi2(1), with a per-axis k_c.
+    """
+
+    def __init__(self, name: str = "B", tau: float = 10.0, sigma_m: float = 5.0, window: int = 5,
+                 min_samples: int = 3, threshold: float = 16.27, test: Literal["pooled", "per_axis"] = "pooled",
+                 rearm_after: int | None = None, level_uncertainty: bool = True, compensate: bool = True,
+                 level_correlation: bool = True) -> None:
+        super().__init__(name, tau, sigma_m, window, min_samples, threshold, rearm_after, level_uncertainty,
+                         compensate)
+        self.level_correlation = bool(level_correlation)
+        if test not in ("pooled", "per_axis"):
+            raise ValueError(f"test: {test!r} is not one of ['pooled', 'per_axis']")
+        self.test = test
+
+    def run(self, measurements: MeasurementSeries) -> TrackEstimate:
+        started = time.perf_counter()
+        z, polar_var, dt = self._checked(measurements)
+        self._model(dt)
+        F, Q, G = self.F, self.Q, self.G
+        R, K, _ = z.shape
+        zI = polar_to_cartesian(z)                                          # converted, inertial (R, K, 3)
+        # history, indexed by scan
+        frames = np.zeros((R, K, 3, 3))
+        x_hist = np.zeros((R, K, 3, 3))
+        pvv_hist = np.zeros((R, K, 3))
+        nu_hist = np.zeros((R, K, 3))
+        s_hist = np.ones((R, K, 3))
+        r_hist = np.zeros((R, K, 3))
+        gain_hist = np.zeros((R, K, 3, 3))
+        out_x = np.full((R, K, 9), np.nan)
+        out_P = np.full((R, K, 9, 9), np.nan)
+        level_out = np.zeros((R, K, 3))
+        detected_out = np.zeros((R, K), dtype=np.int8)
+        axis_out = np.zeros((R, K, 3), dtype=np.int8)
+        stat_out = np.full((R, K), np.nan)
+        onset_out = np.full((R, K), -1, dtype=np.int64)
+
+        # ---- k = 1: two-point start in the LOS frame of z_I(1) (P's 3x3 blocks diagonal, eq 16 note)
+        rng1, phi1, th1 = line_of_sight_angles(zI[:, 1])
+        T = los_rotation(phi1, th1)
+        x = np.zeros((R, 3, 3))
+        x[:, :, 0] = np.einsum("rab,rb->ra", T, zI[:, 1])
+        x[:, :, 1] = np.einsum("rab,rb->ra", T, zI[:, 1] - zI[:, 0]) / dt
+        Rd = los_noise_variances(rng1, th1, polar_var)
+        P = np.zeros((R, 3, 3, 3))
+        P[:, :, 0, 0], P[:, :, 0, 1] = Rd, Rd / dt
+        P[:, :, 1, 0], P[:, :, 1, 1] = Rd / dt, 2 * Rd / dt**2
+        P[:, :, 2, 2] = self.sigma_m**2
+        u = np.zeros((R, 3))                       # input level in the current frame
+        level_cov = np.zeros((R, 3, 3))            # its covariance, current frame
+        k_c = np.ones((R, 3), dtype=np.int64)      # last compensation (track start) per axis
+        sens = np.zeros((R, 3, 3, 3))              # d x / d (level error), current frame (axis, kin, input)
+        sens_v_hist = np.zeros((R, K, 3, 3))       # its velocity rows (axis, input) per scan
+        frames[:, 1], x_hist[:, 1], pvv_hist[:, 1], r_hist[:, 1] = T, x, P[:, :, 1, 1], Rd
+        self._output(out_x, out_P, level_out, 1, x, P, T, u)
+
+        for k in range(2, K):
+            # eqs 3-4 (+ G u, as in eq 17): propagate in frame k-1, each axis on its own
+            x = x @ F.T + u[:, :, None] * G
+            P = F @ P @ F.T + Q
+            # eqs 5-7, twist-free (notes 2.3): T(k) from the inertial angles of the prediction
+            p_inertial = np.einsum("rab,ra->rb", T, x[:, :, 0])
+            rng, phi, th = line_of_sight_angles(p_inertial)
+            T_new = los_rotation(phi, th)
+            dT = T_new @ np.swapaxes(T, 1, 2)
+            x = np.einsum("rab,rbk->rak", dT, x)
+            u = np.einsum("rab,rb->ra", dT, u)
+            level_cov = dT @ level_cov @ np.swapaxes(dT, 1, 2)
+            T = T_new
+            # eqs 8-11, 15: per-axis scalar update with the diagonal LOS noise
+            zL = np.einsum("rab,rb->ra", T, zI[:, k])
+            Rd = los_noise_variances(rng, th, polar_var)
+            S = P[:, :, 0, 0] + Rd
+            gain = P[:, :, :, 0] / S[:, :, None]
+            nu = zL - x[:, :, 0]
+            x = x + gain * nu[:, :, None]
+            P = P - gain[:, :, :, None] * gain[:, :, None, :] * S[:, :, None, None]
+            # the state's sensitivity to an error in the level follows the filter's linear response
+            sens = self._respond(sens, dT, gain)
+            frames[:, k], x_hist[:, k], pvv_hist[:, k] = T, x, P[:, :, 1, 1]
+            nu_hist[:, k], s_hist[:, k], r_hist[:, k], gain_hist[:, k] = nu, S, Rd, gain
+            sens_v_hist[:, k] = sens[:, :, 1, :]
+
+            hyps = self._hypotheses(k)
+            armed = (k - k_c) >= self.rearm_after                                 # (R, 3)
+            if hyps and armed.any():
+                x, P, u, level_cov, T, k_c, sens, det_axes, stat, onset = self._mie(
+                    k, hyps, armed, x, P, u, level_cov, T, k_c, sens, zI, frames, x_hist, pvv_hist, nu_hist,
+                    s_hist, r_hist, gain_hist, sens_v_hist)
+                detected_out[:, k] = det_axes.any(axis=1)
+                axis_out[:, k] = det_axes
+                stat_out[:, k] = stat
+                onset_out[:, k] = onset
+                frames[:, k], x_hist[:, k], pvv_hist[:, k] = T, x, P[:, :, 1, 1]
+                sens_v_hist[:, k] = sens[:, :, 1, :]
+            self._output(out_x, out_P, level_out, k, x, P, T, u)
+
+        extras = {"input_level": level_out, "maneuver_detected": detected_out, "test_statistic": stat_out,
+                  "onset_step": onset_out}
+        if self.test == "per_axis":
+            extras["maneuver_detected_axis"] = axis_out
+        return TrackEstimate(measurements.time, out_x, out_P, extras, time.perf_counter() - started)
+
+    @staticmethod
+    def _output(out_x, out_P, level_out, k, x, P, T, u) -> None:
+        """LOS frame -> inertial: x_I = T' x, P_I = T9' blkdiag(P_a) T9, in kin-major order."""
+        R = x.shape[0]
+        out_x[:, k] = np.einsum("rab,rak->rkb", T, x).reshape(R, 9)
+        out_P[:, k] = np.einsum("rac,rakl,rad->rkcld", T, P, T).reshape(R, 9, 9)
+        level_out[:, k] = np.einsum("rab,ra->rb", T, u)
+
+    def _respond(self, sens: np.ndarray, dT: np.ndarray, gain: np.ndarray) -> np.ndarray:
+        """One scan of d x / d eps for a level error eps held in the (rotating) LOS frame:
+        x^k = (I - K H) dT9 [F x^{k-1} + G u^{k-1}] and eps^{k-1} = dT' eps^k."""
+        Y = np.einsum("kl,ralj->rakj", self.F, sens) + self.G[None, None, :, None] * np.eye(3)[None, :, None, :]
+        Y = np.einsum("rab,rbkj->rakj", dT, Y)
+        Y = np.einsum("rakm,rjm->rakj", Y, dT)
+        return Y - gain[:, :, :, None] * Y[:, :, 0:1, :]
+
+    def _mie(self, k, hyps, armed, x, P, u, level_cov, T, k_c, sens, zI, frames, x_hist, pvv_hist, nu_hist, s_hist,
+             r_hist, gain_hist, sens_v_hist):
+        dt = self.dt
+        R = x.shape[0]
+        first = k - self._span + 1
+        rows = np.arange(R)
+        scores, inputs, variances, valid, olds, old_vars = [], [], [], [], [], []
+        T_k_t = np.swapaxes(T, 1, 2)
+        for d in hyps:
+            n = k - d
+            # innovations of the samples i <= n in the window (eq 24, first sum)
+            innov = np.zeros((R, 3))
+            for i in range(max(first, 2), n + 1):
+                innov += nu_hist[:, i] ** 2 / s_hist[:, i]
+            # pseudo-residuals i > n in frame n (eq 26) and their decoupled covariance (eq 23)
+            Tn = frames[:, n]
+            v_n = x_hist[:, n, :, 1]
+            tpvv = dt * dt * pvv_hist[:, n]
+            A = np.zeros((R, 3))
+            b = np.zeros((R, 3))
+            quad = np.zeros((R, 3))
+            weight_sum = np.zeros((R, 3))
+            weights, rvar = [], []
+            for i in range(n + 1, k + 1):
+                e = np.einsum("rab,rb->ra", Tn, zI[:, i] - zI[:, i - 1]) - dt * v_n
+                S_i = tpvv + r_hist[:, i] + r_hist[:, i - 1]
+                N_i = (i - n - 0.5) * dt * dt                           # eq 25 reduces to this (notes 2.4)
+                A += N_i * N_i / S_i
+                b += N_i * e / S_i
+                quad += e * e / S_i
+                weights.append(N_i / S_i)
+                weight_sum += N_i / S_i
+                rvar.append(r_hist[:, i])
+            u_hat = b / A                                               # eq 28, per axis
+            L = -0.5 * innov - 0.5 * quad + 0.5 * u_hat * u_hat * A     # eq 29-30, per axis
+            cross = np.zeros((R, 3))                                    # eq 32-33 correlations
+            m = len(weights)
+            for a_i in range(m):
+                for a_j in range(a_i + 1, m):
+                    C = tpvv - (rvar[a_i] if a_j == a_i + 1 else 0.0)
+                    cross += 2.0 * weights[a_i] * C * weights[a_j]
+            sigma_u = 1.0 / A + cross / (A * A)
+            # the old level and its covariance seen in frame n
+            rot = Tn @ T_k_t
+            u_old = np.einsum("rab,rb->ra", rot, u)
+            cov_n = rot @ level_cov @ np.swapaxes(rot, 1, 2)
+            if self.level_correlation:
+                # Delta's error = (u_hat - u) - eps = xi - (I + c T J_v(n)) eps: the compensated velocity
+                # v_hat(n) carries J_v(n) eps and biases u_hat by -c T J_v(n) eps (c = sum N/S / sum N^2/S)
+                gain_eps = np.eye(3) + (weight_sum / A)[:, :, None] * dt * sens_v_hist[:, n]
+                old_var = np.einsum("rab,rbc,rac->ra", gain_eps, cov_n, gain_eps)
+            else:
+                old_var = np.diagonal(cov_n, axis1=1, axis2=2)
+            scores.append(L)
+            inputs.append(u_hat)
+            variances.append(sigma_u)
+            valid.append(armed & (n >= k_c))
+            olds.append(u_old)
+            old_vars.append(old_var)
+        scores, inputs, variances = np.stack(scores), np.stack(inputs), np.stack(variances)   # (H, R, 3)
+        valid, olds, old_vars = np.stack(valid), np.stack(olds), np.stack(old_vars)
+        test_var = variances + (old_vars if self.level_uncertainty else 0.0)
+        if self.test == "pooled":
+            total = np.where(valid.all(axis=2), scores.sum(axis=2), -np.inf)                   # (H, R)
+            best = np.argmax(total, axis=0)                                                    # (R,)
+            ok = np.isfinite(total[best, rows])
+            best_axes = np.broadcast_to(best[:, None], (R, 3))
+            delta = inputs[best, rows] - olds[best, rows]
+            stat = (delta * delta / test_var[best, rows]).sum(axis=1)
+            det = ok & (stat > self.threshold)
+            det_axes = np.broadcast_to(det[:, None], (R, 3)).copy()
+            stat = np.where(ok, stat, np.nan)
+        else:
+            masked = np.where(valid, scores, -np.inf)
+            best_axes = np.argmax(masked, axis=0)                                              # (R, 3)
+            pick = lambda arr: np.take_along_axis(arr, best_axes[None], axis=0)[0]            # noqa: E731
+            ok = np.isfinite(pick(masked))
+            delta = pick(inputs) - pick(olds)
+            stat_axes = delta * delta / pick(test_var)
+            det_axes = ok & (stat_axes > self.threshold)
+            stat = np.where(ok.any(axis=1), np.where(ok, stat_axes, -np.inf).max(axis=1), np.nan)
+        onset = np.where(det_axes.any(axis=1), k - np.asarray(hyps)[best_axes[:, 0] if self.test == "pooled"
+                                                                    else best_axes.max(axis=1)], -1)
+        if not (self.compensate and det_axes.any()):
+            return x, P, u, level_cov, T, k_c, sens, det_axes, stat, onset
+
+        # ---- compensation (eqs 34-44) for the detected (run, axis) pairs --------------------------
+        delta = np.where(det_axes, delta, 0.0)
+        sigma = np.where(det_axes, np.take_along_axis(variances, best_axes[None], axis=0)[0], 0.0)
+        dx = np.zeros_like(x)
+        dP = np.zeros_like(P)
+        du = np.zeros_like(u)
+        new_cov = np.zeros((R, 3))
+        for h, d in enumerate(hyps):
+            use = det_axes & (best_axes == h)                                                   # (R, 3) inputs
+            if not use.any():
+                continue
+            n = k - d
+            M = self._gain_matrix(n, k, frames, gain_hist)                                      # (R, a, kin, j)
+            M = M * use[:, None, None, :]
+            # the new level's error enters the state through M (in frame n): re-express it in frame k
+            sens = np.where(use[:, None, None, :], 0.0, sens) + np.einsum(
+                "rakm,rjm->rakj", M, T @ np.swapaxes(frames[:, n], 1, 2))
+            dx += np.einsum("rakj,rj->rak", M, delta)
+            dP += np.einsum("rakj,rj,ralj->rakl", M, sigma, M)                                  # eq 37, per-axis blocks
+            du += np.einsum("rab,rb->ra", T @ np.swapaxes(frames[:, n], 1, 2), delta * use)     # eq 38
+            new_cov += np.where(use, sigma, 0.0)
+        x, P, u = x + dx, P + dP, u + du
+        # the level's covariance: the detected axes' estimates replace the old ones
+        keep = ~det_axes
+        level_cov = level_cov * (keep[:, :, None] & keep[:, None, :]) + np.einsum("ra,ab->rab", new_cov, np.eye(3))
+        # eqs 39-44: re-point the frame at the compensated position (P is not rotated)
+        moved = det_axes.any(axis=1)
+        _, dphi, dth = line_of_sight_angles(x[:, :, 0])
+        dTu = np.where(moved[:, None, None], los_rotation(dphi, dth), np.eye(3))
+        x = np.einsum("rab,rbk->rak", dTu, x)
+        u = np.einsum("rab,rb->ra", dTu, u)
+        level_cov = dTu @ level_cov @ np.swapaxes(dTu, 1, 2)
+        sens = np.einsum("rab,rbkm,rjm->rakj", dTu, sens, dTu)
+        T = dTu @ T
+        k_c = np.where(det_axes if self.test == "per_axis" else moved[:, None], k, k_c)
+        return x, P, u, level_cov, T, k_c, sens, det_axes, stat, onset
+
+    def _gain_matrix(self, n: int, k: int, frames: np.ndarray, gain_hist: np.ndarray) -> np.ndarray:
+        """M_n(k) (R, axis, kin, input) by the exact recursion of notes 2.4 H (eq 19 with the rotations):
+        M <- B; for i = n+1..k: M <- (I - K(i) H) dT9(i/i-1) [F M + G dT3(i-1/n)]."""
+        R = frames.shape[0]
+        M = np.zeros((R, 3, 3, 3))
+        M[:, [0, 1, 2], 2, [0, 1, 2]] = 1.0
+        Tn_t = np.swapaxes(frames[:, n], 1, 2)
+        for i in range(n + 1, k + 1):
+            Y = np.einsum("kl,ralj->rakj", self.F, M) + self.G[None, None, :, None] * (frames[:, i - 1] @ Tn_t)[:, :, None, :]
+            dT = frames[:, i] @ np.swapaxes(frames[:, i - 1], 1, 2)
+            Y = np.einsum("rab,rbkj->rakj", dT, Y)
+            M = Y - gain_hist[:, i][:, :, :, None] * Y[:, :, 0:1, :]
+        return M
+
+
+class InertialMIE(_MIEBase):
+    """Filters A and A-full: coupled inertial 9-state KF on converted measurements + MIE with
+    full 3x3 matrices (the frame is the identity: T3 = I, dT3 = I).
+
+    ``test``: ``per_axis_sum`` (A, the paper's reading) sums the per-axis normalised squares
+    Delta_a^2 / Cov_aa against chi2(3), as if the axes were independent; ``full`` (A-full) uses
+    Delta' Cov^-1 Delta.
+    """
+
+    def __init__(self, name: str = "A", tau: float = 10.0, sigma_m: float = 5.0, window: int = 5,
+                 min_samples: int = 3, threshold: float = 16.27,
+                 test: Literal["per_axis_sum", "full"] = "per_axis_sum", rearm_after: int | None = None,
+                 level_uncertainty: bool = True, compensate: bool = True, level_correlation: bool = True) -> None:
+        super().__init__(name, tau, sigma_m, window, min_samples, threshold, rearm_after, level_uncertainty,
+                         compensate)
+        self.level_correlation = bool(level_correlation)
+        if test not in ("per_axis_sum", "full"):
+            raise ValueError(f"test: {test!r} is not one of ['per_axis_sum', 'full']")
+        self.test = test
+
+    def run(self, measurements: MeasurementSeries) -> TrackEstimate:
+        started = time.perf_counter()
+        z, polar_var, dt = self._checked(measurements)
+        self._model(dt)
+        F9 = np.kron(np.eye(3), self.F)
+        Q9 = np.kron(np.eye(3), self.Q)
+        G9 = np.kron(np.eye(3), self.G[:, None])                         # (9, 3): level -> state
+        pos, vel = [0, 3, 6], [1, 4, 7]
+        R, K, _ = z.shape
+        zI = polar_to_cartesian(z)
+        RI = converted_covariance(z, polar_var)                          # at the measured (r, phi, theta)
+        x_hist = np.zeros((R, K, 9))
+        pvv_hist = np.zeros((R, K, 3, 3))
+        nu_hist = np.zeros((R, K, 3))
+        sinv_hist = np.zeros((R, K, 3, 3))
+        gain_hist = np.zeros((R, K, 9, 3))
+        out_x = np.full((R, K, 9), np.nan)
+        out_P = np.full((R, K, 9, 9), np.nan)
+        level_out = np.zeros((R, K, 3))
+        detected_out = np.zeros((R, K), dtype=np.int8)
+        stat_out = np.full((R, K), np.nan)
+        onset_out = np.full((R, K), -1, dtype=np.int64)
+
+        x = np.zeros((R, 9))
+        x[:, pos] = zI[:, 1]
+        x[:, vel] = (zI[:, 1] - zI[:, 0]) / dt
+        P = np.zeros((R, 9, 9))
+        P[:, np.ix_(pos, pos)[0], np.ix_(pos, pos)[1]] = RI[:, 1]
+        P[:, np.ix_(pos, vel)[0], np.ix_(pos, vel)[1]] = RI[:, 1] / dt
+        P[:, np.ix_(vel, pos)[0], np.ix_(vel, pos)[1]] = RI[:, 1] / dt
+        P[:, np.ix_(vel, vel)[0], np.ix_(vel, vel)[1]] = (RI[:, 1] + RI[:, 0]) / dt**2
+        P[:, [2, 5, 8], [2, 5, 8]] = self.sigma_m**2
+        u = np.zeros((R, 3))
+        level_cov = np.zeros((R, 3, 3))
+        k_c = np.ones(R, dtype=np.int64)
+        sens = np.zeros((R, 9, 3))                 # d x / d (level error)
+        sens_v_hist = np.zeros((R, K, 3, 3))
+        x_hist[:, 1], pvv_hist[:, 1] = x, P[:, vel][:, :, vel]
+        self._output(out_x, out_P, level_out, 1, x, P, u)
+        for k in range(2, K):
+            x = x @ F9.T + u @ G9.T
+            P = F9 @ P @ F9.T + Q9
+            S = P[:, pos][:, :, pos] + RI[:, k]
+            S_inv = np.linalg.inv(S)
+            gain = P[:, :, pos] @ S_inv
+            nu = zI[:, k] - x[:, pos]
+            x = x + np.einsum("rij,rj->ri", gain, nu)
+            P = P - gain @ S @ np.swapaxes(gain, 1, 2)
+            P = 0.5 * (P + np.swapaxes(P, 1, 2))
+            Y = F9 @ sens + G9                                          # the filter's response to a level error
+            sens = Y - gain @ Y[:, pos]
+            x_hist[:, k], pvv_hist[:, k] = x, P[:, vel][:, :, vel]
+            nu_hist[:, k], sinv_hist[:, k], gain_hist[:, k] = nu, S_inv, gain
+            sens_v_hist[:, k] = sens[:, vel]
+            hyps = self._hypotheses(k)
+            armed = (k - k_c) >= self.rearm_after
+            if hyps and armed.any():
+                x, P, u, level_cov, k_c, sens, det, stat, onset = self._mie(
+                    k, hyps, armed, x, P, u, level_cov, k_c, sens, zI, RI, x_hist, pvv_hist, nu_hist, sinv_hist,
+                    gain_hist, sens_v_hist, F9, G9)
+                detected_out[:, k], stat_out[:, k], onset_out[:, k] = det, stat, onset
+                x_hist[:, k], pvv_hist[:, k] = x, P[:, vel][:, :, vel]
+                sens_v_hist[:, k] = sens[:, vel]
+            self._output(out_x, out_P, level_out, k, x, P, u)
+        extras = {"input_level": level_out, "maneuver_detected": detected_out, "test_statistic": stat_out,
+                  "onset_step": onset_out}
+        return TrackEstimate(measurements.time, out_x, out_P, extras, time.perf_counter() - started)
+
+    @staticmethod
+    def _output(out_x, out_P, level_out, k, x, P, u) -> None:
+        out_x[:, k] = x[:, _KIN_MAJOR]
+        out_P[:, k] = P[:, _KIN_MAJOR][:, :, _KIN_MAJOR]
+        level_out[:, k] = u
+
+    def _mie(self, k, hyps, armed, x, P, u, level_cov, k_c, sens, zI, RI, x_hist, pvv_hist, nu_hist, sinv_hist,
+             gain_hist, sens_v_hist, F9, G9):
+        dt = self.dt
+        R = x.shape[0]
+        rows = np.arange(R)
+        first = k - self._span + 1
+        vel = [1, 4, 7]
+        scores, inputs, covs, valid, old_covs = [], [], [], [], []
+        for d in hyps:
+            n = k - d
+            innov = np.zeros(R)
+            for i in range(max(first, 2), n + 1):
+                innov += np.einsum("ri,rij,rj->r", nu_hist[:, i], sinv_hist[:, i], nu_hist[:, i])
+            v_n = x_hist[:, n, vel]
+            tpvv = dt * dt * pvv_hist[:, n]
+            A = np.zeros((R, 3, 3))
+            b = np.zeros((R, 3))
+            quad = np.zeros(R)
+            W = np.zeros((R, 3, 3))                                # sum N_i S_i^-1
+            weighted = []                                          # N_i S_i^-1
+            for i in range(n + 1, k + 1):
+                e = zI[:, i] - zI[:, i - 1] - dt * v_n              # eq 26 with T3 = I
+                S_inv = np.linalg.inv(tpvv + RI[:, i] + RI[:, i - 1])
+                N_i = (i - n - 0.5) * dt * dt
+                A += N_i * N_i * S_inv
+                b += N_i * np.einsum("rij,rj->ri", S_inv, e)
+                quad += np.einsum("ri,rij,rj->r", e, S_inv, e)
+                weighted.append((N_i * S_inv, RI[:, i]))
+                W += N_i * S_inv
+            A_inv = np.linalg.inv(A)
+            if self.level_correlation:      # see LOSMIE: Delta's error = xi - (I + A^-1 W T J_v(n)) eps
+                gain_eps = np.eye(3) + A_inv @ W @ (dt * sens_v_hist[:, n])
+                old_covs.append(gain_eps @ level_cov @ np.swapaxes(gain_eps, 1, 2))
+            else:
+                old_covs.append(level_cov)
+            u_hat = np.einsum("rij,rj->ri", A_inv, b)
+            L = -0.5 * innov - 0.5 * quad + 0.5 * np.einsum("ri,rij,rj->r", u_hat, A, u_hat)
+            cross = np.zeros((R, 3, 3))
+            m = len(weighted)
+            for a_i in range(m):
+                for a_j in range(a_i + 1, m):
+                    C = tpvv - (weighted[a_i][1] if a_j == a_i + 1 else 0.0)
+                    term = weighted[a_i][0] @ C @ weighted[a_j][0]
+                    cross += term + np.swapaxes(term, 1, 2)
+            scores.append(np.where(armed & (n >= k_c), L, -np.inf))
+            inputs.append(u_hat)
+            covs.append(A_inv + A_inv @ cross @ A_inv)
+            valid.append(armed & (n >= k_c))
+        scores, inputs, covs = np.stack(scores), np.stack(inputs), np.stack(covs)
+        best = np.argmax(scores, axis=0)
+        ok = np.isfinite(scores[best, rows])
+        delta = inputs[best, rows] - u
+        sigma_u = covs[best, rows]
+        V = sigma_u + (np.stack(old_covs)[best, rows] if self.level_uncertainty else 0.0)
+        if self.test == "full":
+            stat = np.einsum("ri,rij,rj->r", delta, np.linalg.inv(V), delta)
+        else:
+            stat = (delta * delta / np.diagonal(V, axis1=1, axis2=2)).sum(axis=1)
+        det = ok & (stat > self.threshold)
+        stat = np.where(ok, stat, np.nan)
+        onset = np.where(det, k - np.asarray(hyps)[best], -1)
+        if not (self.compensate and det.any()):
+            return x, P, u, level_cov, k_c, sens, det, stat, onset
+        delta = np.where(det[:, None], delta, 0.0)
+        H = np.zeros((3, 9))
+        H[[0, 1, 2], [0, 3, 6]] = 1.0
+        M = np.zeros((R, 9, 3))
+        for h, d in enumerate(hyps):
+            use = det & (best == h)
+            if not use.any():
+                continue
+            n = k - d
+            Mh = np.broadcast_to(np.kron(np.eye(3), np.array([[0.0], [0.0], [1.0]])), (R, 9, 3)).copy()   # B
+            for i in range(n + 1, k + 1):
+                Y = F9 @ Mh + G9
+                Mh = Y - gain_hist[:, i] @ (H @ Y)
+            M = np.where(use[:, None, None], Mh, M)
+        x = x + np.einsum("rij,rj->ri", M, delta)                                # eq 34
+        P = P + M @ np.where(det[:, None, None], sigma_u, 0.0) @ np.swapaxes(M, 1, 2)   # eq 37
+        u = u + delta                                                            # eq 38
+        level_cov = np.where(det[:, None, None], sigma_u, level_cov)
+        sens = np.where(det[:, None, None], M, sens)
+        k_c = np.where(det, k, k_c)
+        return x, P, u, level_cov, k_c, sens, det, stat, onset
