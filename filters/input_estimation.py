@@ -235,65 +235,52 @@ class LOSMIE(_MIEBase):
 
     def _mie(self, k, hyps, armed, x, P, u, level_cov, T, k_c, sens, zI, frames, x_hist, pvv_hist, nu_hist, s_hist,
              r_hist, gain_hist, sens_v_hist):
+        """Scores, inputs and covariances of every onset hypothesis at once, per axis (scalars)."""
         dt = self.dt
         R = x.shape[0]
-        first = k - self._span + 1
         rows = np.arange(R)
-        scores, inputs, variances, valid, olds, old_vars = [], [], [], [], [], []
-        T_k_t = np.swapaxes(T, 1, 2)
-        for d in hyps:
-            n = k - d
-            # innovations of the samples i <= n in the window (eq 24, first sum)
-            innov = np.zeros((R, 3))
-            for i in range(max(first, 2), n + 1):
-                innov += nu_hist[:, i] ** 2 / s_hist[:, i]
-            # pseudo-residuals i > n in frame n (eq 26) and their decoupled covariance (eq 23)
-            Tn = frames[:, n]
-            v_n = x_hist[:, n, :, 1]
-            tpvv = dt * dt * pvv_hist[:, n]
-            A = np.zeros((R, 3))
-            b = np.zeros((R, 3))
-            quad = np.zeros((R, 3))
-            weight_sum = np.zeros((R, 3))
-            weights, rvar = [], []
-            for i in range(n + 1, k + 1):
-                e = np.einsum("rab,rb->ra", Tn, zI[:, i] - zI[:, i - 1]) - dt * v_n
-                S_i = tpvv + r_hist[:, i] + r_hist[:, i - 1]
-                N_i = (i - n - 0.5) * dt * dt                           # eq 25 reduces to this (notes 2.4)
-                A += N_i * N_i / S_i
-                b += N_i * e / S_i
-                quad += e * e / S_i
-                weights.append(N_i / S_i)
-                weight_sum += N_i / S_i
-                rvar.append(r_hist[:, i])
-            u_hat = b / A                                               # eq 28, per axis
-            L = -0.5 * innov - 0.5 * quad + 0.5 * u_hat * u_hat * A     # eq 29-30, per axis
-            cross = np.zeros((R, 3))                                    # eq 32-33 correlations
-            m = len(weights)
-            for a_i in range(m):
-                for a_j in range(a_i + 1, m):
-                    C = tpvv - (rvar[a_i] if a_j == a_i + 1 else 0.0)
-                    cross += 2.0 * weights[a_i] * C * weights[a_j]
-            sigma_u = 1.0 / A + cross / (A * A)
-            # the old level and its covariance seen in frame n
-            rot = Tn @ T_k_t
-            u_old = np.einsum("rab,rb->ra", rot, u)
-            cov_n = rot @ level_cov @ np.swapaxes(rot, 1, 2)
-            if self.level_correlation:
-                # Delta's error = (u_hat - u) - eps = xi - (I + c T J_v(n)) eps: the compensated velocity
-                # v_hat(n) carries J_v(n) eps and biases u_hat by -c T J_v(n) eps (c = sum N/S / sum N^2/S)
-                gain_eps = np.eye(3) + (weight_sum / A)[:, :, None] * dt * sens_v_hist[:, n]
-                old_var = np.einsum("rab,rbc,rac->ra", gain_eps, cov_n, gain_eps)
-            else:
-                old_var = np.diagonal(cov_n, axis1=1, axis2=2)
-            scores.append(L)
-            inputs.append(u_hat)
-            variances.append(sigma_u)
-            valid.append(armed & (n >= k_c))
-            olds.append(u_old)
-            old_vars.append(old_var)
-        scores, inputs, variances = np.stack(scores), np.stack(inputs), np.stack(variances)   # (H, R, 3)
-        valid, olds, old_vars = np.stack(valid), np.stack(olds), np.stack(old_vars)
+        D = self._span
+        window = np.arange(k - D + 1, k + 1)                                   # scans i of the data window
+        onsets = k - np.asarray(hyps)                                          # (H,)
+        pseudo = window[None, :] > onsets[:, None]                             # (H, D): i > n
+        innov_mask = (~pseudo) & (window[None, :] >= 2)
+        # innovations of the samples i <= n (eq 24, first sum)
+        q = nu_hist[:, window] ** 2 / s_hist[:, window]                        # (R, D, 3)
+        innov = np.einsum("hd,rda->hra", innov_mask, q)
+        # pseudo-residuals in frame n (eq 26) and their decoupled covariance (eq 23)
+        Tn = frames[:, onsets]                                                 # (R, H, 3, 3)
+        v_n = x_hist[:, onsets][:, :, :, 1]                                    # (R, H, 3)
+        tpvv = dt * dt * pvv_hist[:, onsets]                                   # (R, H, 3)
+        dz = zI[:, window] - zI[:, window - 1]                                 # (R, D, 3)
+        e = np.einsum("rhab,rdb->rhda", Tn, dz) - dt * v_n[:, :, None, :]      # (R, H, D, 3)
+        S = tpvv[:, :, None, :] + r_hist[:, window][:, None] + r_hist[:, window - 1][:, None]
+        N = np.where(pseudo, (window[None, :] - onsets[:, None] - 0.5) * dt * dt, 0.0)   # eq 25 (notes 2.4)
+        Wt = N[None, :, :, None] / S                                           # N_i / S_i, zero for i <= n
+        A = (N[None, :, :, None] * Wt).sum(axis=2)                             # (R, H, 3)
+        b = (Wt * e).sum(axis=2)
+        quad = (pseudo[None, :, :, None] * e * e / S).sum(axis=2)
+        u_hat = b / A                                                          # eq 28, per axis
+        L = -0.5 * np.moveaxis(innov, 0, 1) - 0.5 * quad + 0.5 * u_hat * u_hat * A     # eqs 29-30
+        # eq 32 with eq 33: sum_{i<j} 2 W_i C_ij W_j, C_ij = T^2 P_vv(n) - R(i) [j = i + 1]
+        w_sum = Wt.sum(axis=2)
+        adjacent = (Wt[:, :, :-1] * Wt[:, :, 1:] * r_hist[:, window[:-1]][:, None]).sum(axis=2)
+        cross = tpvv * (w_sum * w_sum - (Wt * Wt).sum(axis=2)) - 2.0 * adjacent
+        sigma_u = 1.0 / A + cross / (A * A)
+        # the old level and its covariance seen in frame n
+        rot = Tn @ np.swapaxes(T, 1, 2)[:, None]                               # (R, H, 3, 3)
+        u_old = np.einsum("rhab,rb->rha", rot, u)
+        cov_n = rot @ level_cov[:, None] @ np.swapaxes(rot, 2, 3)
+        if self.level_correlation:
+            # Delta's error = xi - (I + c T J_v(n)) eps: the compensated velocity v_hat(n) carries
+            # J_v(n) eps and biases u_hat by -c T J_v(n) eps (c = sum N/S / sum N^2/S)
+            gain_eps = np.eye(3) + (w_sum / A)[..., None] * dt * sens_v_hist[:, onsets]
+            old_var = np.einsum("rhab,rhbc,rhac->rha", gain_eps, cov_n, gain_eps)
+        else:
+            old_var = np.diagonal(cov_n, axis1=2, axis2=3)
+        valid = armed[:, None, :] & (onsets[None, :, None] >= k_c[:, None, :])
+        # (H, R, 3) for the selection below
+        scores, inputs, variances = (np.moveaxis(a, 1, 0) for a in (L, u_hat, sigma_u))
+        valid, olds, old_vars = (np.moveaxis(a, 1, 0) for a in (valid, u_old, old_var))
         test_var = variances + (old_vars if self.level_uncertainty else 0.0)
         if self.test == "pooled":
             total = np.where(valid.all(axis=2), scores.sum(axis=2), -np.inf)                   # (H, R)
@@ -331,7 +318,9 @@ class LOSMIE(_MIEBase):
             if not use.any():
                 continue
             n = k - d
-            M = self._gain_matrix(n, k, frames, gain_hist)                                      # (R, a, kin, j)
+            hit = np.flatnonzero(use.any(axis=1))                       # only the runs that compensate
+            M = np.zeros((R, 3, 3, 3))
+            M[hit] = self._gain_matrix(n, k, frames[hit], gain_hist[hit])                      # (R, a, kin, j)
             M = M * use[:, None, None, :]
             # the new level's error enters the state through M (in frame n): re-express it in frame k
             sens = np.where(use[:, None, None, :], 0.0, sens) + np.einsum(
@@ -537,11 +526,12 @@ class InertialMIE(_MIEBase):
             if not use.any():
                 continue
             n = k - d
-            Mh = np.broadcast_to(np.kron(np.eye(3), np.array([[0.0], [0.0], [1.0]])), (R, 9, 3)).copy()   # B
+            hit = np.flatnonzero(use)                                   # only the runs that compensate
+            Mh = np.broadcast_to(np.kron(np.eye(3), np.array([[0.0], [0.0], [1.0]])), (hit.size, 9, 3)).copy()  # B
             for i in range(n + 1, k + 1):
                 Y = F9 @ Mh + G9
-                Mh = Y - gain_hist[:, i] @ (H @ Y)
-            M = np.where(use[:, None, None], Mh, M)
+                Mh = Y - gain_hist[hit, i] @ (H @ Y)
+            M[hit] = Mh
         x = x + np.einsum("rij,rj->ri", M, delta)                                # eq 34
         P = P + M @ np.where(det[:, None, None], sigma_u, 0.0) @ np.swapaxes(M, 1, 2)   # eq 37
         u = u + delta                                                            # eq 38
