@@ -33,7 +33,8 @@ class Detections:
 
     time (K,), sensor (K,) which sensor scans at k; z (R, K, D, m) NaN where nothing was
     detected; noise_covariance (R, K, D, m, m) what the sensor reports as its noise;
-    target (R, K, D) the true origin (-1 clutter); detected (R, K, D) False for a miss.
+    target (R, K, D) the true origin (-1 clutter); detected (R, K, D) False for a miss;
+    measurement_units one unit per measurement name (empty: not stated, e.g. all metres).
     """
 
     time: np.ndarray
@@ -43,6 +44,7 @@ class Detections:
     target: np.ndarray
     detected: np.ndarray
     measurement_names: tuple[str, ...]
+    measurement_units: tuple[str, ...] = ()
 
     @property
     def runs(self) -> int:

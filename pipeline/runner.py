@@ -18,13 +18,14 @@ from pathlib import Path
 from typing import Any, Callable
 
 import polars as pl
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from filters.base import TrackEstimate
 from pipeline import schemas
 from pipeline.config import build, flatten, selected_variants, validate
+from pipeline.errors import ConfigError
 from pipeline.stages.evaluate import Window, metrics_frame, per_step_metrics, summary_rows
-from pipeline.stages.report import format_summary
+from pipeline.stages.report import ReportContext, format_summary
 from pipeline.stages.track import measurement_series
 from pipeline.store import StageCache, atomic_write_parquet, atomic_write_text, package_version, publish, stable_hash, stage_key
 
@@ -87,8 +88,61 @@ def _provenance(df: pl.DataFrame, ctx: RunContext, experiment: str, config_hash:
 
 
 def _config_columns(resolved: dict) -> dict[str, Any]:
-    # filters.<v>.models repeats the top-level models node (interpolated): keep it once
-    return {f"{k}": v for k, v in flatten(resolved, skip=("filters.*.models", "description")).items()}
+    # filters.<v>.models repeats the top-level models node (interpolated): keep it once; the report
+    # node holds reference tables (a paper's numbers), not parameters of the experiment
+    return {f"{k}": v for k, v in flatten(resolved, skip=("filters.*.models", "description", "report")).items()}
+
+
+def _check_count_windows(cfg: DictConfig) -> None:
+    """metrics.count_windows: like metrics.windows (config.validate), named apart from them."""
+    windows = cfg.metrics.get("count_windows") or {}
+    for name, bounds in windows.items():
+        if (not isinstance(bounds, (list, ListConfig)) or len(bounds) != 2 or not all(_is_int(b) for b in bounds)
+                or bounds[0] > bounds[1] or bounds[0] < 0):
+            raise ConfigError(f"metrics.count_windows.{name}: {bounds!r} must be [first_step, last_step] with "
+                              f"0 <= first_step <= last_step.")
+        if name in (cfg.metrics.get("windows") or {}):
+            raise ConfigError(f"metrics.count_windows.{name}: the name is also a key of metrics.windows; give the "
+                              f"count window another name (summary rows are keyed by window name).")
+
+
+def _is_int(value: Any) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+def _windows(cfg: DictConfig, key: str, K: int) -> list[Window]:
+    return [Window(name, int(b[0]), min(int(b[1]), K - 1)) for name, b in (cfg.metrics.get(key) or {}).items()]
+
+
+def build_report_tables(cfg: DictConfig) -> dict[str, Any]:
+    """report.tables: name -> table object (see pipeline.stages.report), built and checked up front."""
+    report = cfg.get("report")
+    nodes = report.get("tables") if isinstance(report, DictConfig) else None
+    if report is not None and not isinstance(report, DictConfig):
+        raise ConfigError(f"report: {report!r} must be a mapping with a 'tables' mapping (name -> table node).")
+    if not nodes:
+        return {}
+    if not isinstance(nodes, DictConfig):
+        raise ConfigError(f"report.tables: must be a mapping name -> table node with a _target_, not "
+                          f"{type(nodes).__name__}; e.g. report.tables.table1: {{_target_: "
+                          f"pipeline.stages.report.BinnedTable, ...}}.")
+    tables = {}
+    for name, node in nodes.items():
+        if node is None:
+            continue          # a table switched off with report.tables.NAME=null
+        if not isinstance(node, DictConfig) or "_target_" not in node:
+            raise ConfigError(f"report.tables.{name}: {node!r} is not a table node; it needs a _target_ naming a "
+                              f"class with render(ReportContext) -> str (e.g. pipeline.stages.report.BinnedTable).")
+        table = build(node, f"report.tables.{name}")
+        if not callable(getattr(table, "render", None)):
+            raise ConfigError(f"report.tables.{name}: {node._target_} has no render(ReportContext) method.")
+        unknown = [v for v in getattr(table, "variant_keys", ()) if v not in cfg.filters]
+        if unknown:
+            raise ConfigError(f"report.tables.{name}: names variant(s) {unknown} that experiment "
+                              f"'{cfg.get('experiment_name')}' does not define; its variants are "
+                              f"{list(cfg.filters.keys())}.")
+        tables[str(name)] = table
+    return tables
 
 
 def failure_summary(ctx: RunContext, experiment: str, error: str, resolved: dict | None) -> pl.DataFrame:
@@ -140,6 +194,8 @@ def run_experiment(cfg: DictConfig, ctx: RunContext) -> RunOutcome:
     total_started = time.perf_counter()
     experiment = str(cfg.get("experiment_name"))
     validate(cfg)
+    _check_count_windows(cfg)
+    report_tables = build_report_tables(cfg)
     resolved = OmegaConf.to_container(cfg, resolve=True)
     config_hash = stable_hash(resolved)
     runs, seed = int(cfg.mc.runs), int(cfg.mc.seed)
@@ -185,17 +241,18 @@ def run_experiment(cfg: DictConfig, ctx: RunContext) -> RunOutcome:
 
     started = time.perf_counter()
     per_variant = {v: (display[v], per_step_metrics(truth, estimates[v])) for v in variants}
-    windows = [Window(name, int(b[0]), min(int(b[1]), K - 1)) for name, b in (cfg.metrics.get("windows") or {}).items()]
+    windows = _windows(cfg, "windows", K)
+    count_windows = _windows(cfg, "count_windows", K)
     reached = None
     gr = cfg.metrics.get("group_reached")
     if gr and cfg.get("models") and "groups" in cfg.models:
         group_names = list(cfg.models.groups.keys())
         if gr.group not in group_names:
-            from pipeline.errors import ConfigError
             raise ConfigError(f"metrics.group_reached.group: {gr.group!r} is not a model group; groups are {group_names}.")
         reached = (str(gr.group), group_names.index(gr.group), int(gr.by_step))
     ref = cfg.metrics.get("reference_variant")
-    summary = summary_rows(per_variant, estimates, windows, ref if ref in variants else None, runs, reached)
+    summary = summary_rows(per_variant, estimates, windows, ref if ref in variants else None, runs, reached,
+                           count_windows)
     summary = summary.with_columns(pl.col("variant_key").replace_strict(
         {v: cached[v] for v in variants}, return_dtype=pl.Boolean).alias("estimates_from_cache"))
     metrics = _provenance(metrics_frame(truth.time, per_variant, runs), ctx, experiment, config_hash)
@@ -212,17 +269,26 @@ def run_experiment(cfg: DictConfig, ctx: RunContext) -> RunOutcome:
         from pipeline.recording import write_recording
         record_runs = list(cfg.record.runs) if not isinstance(cfg.record.runs, int) else [cfg.record.runs]
         models_node = cfg.get("models")
+        # a sensor with a position (e.g. the 3-D radar: polar detections relative to it) tells the
+        # recording where it sits
+        where = getattr(sensor, "position", None)
+        located = {} if where is None else {"sensor_position": [float(v) for v in where]}
         write_recording(
             ctx.run_dir / "recording.rrd", experiment=experiment, truth=truth, detections=detections,
             estimates=estimates, display_names=display, metrics=metrics, record_runs=record_runs,
             model_names=list(models_node.accelerations.keys()) if models_node and "accelerations" in models_node else None,
             group_names=list(models_node.groups.keys()) if models_node and "groups" in models_node else None,
-            config_text=OmegaConf.to_yaml(cfg, resolve=True), description=str(cfg.get("description", "")))
+            config_text=OmegaConf.to_yaml(cfg, resolve=True), description=str(cfg.get("description", "")), **located)
         log.info("[record] recording.rrd (runs %s), %.2f s", record_runs, time.perf_counter() - started)
 
+    text = format_summary(summary, experiment, runs)
+    if report_tables:
+        report_ctx = ReportContext(experiment, runs, display, metrics, summary)
+        text += "".join(f"\n\n{table.render(report_ctx)}" for table in report_tables.values())
+    atomic_write_text(text + "\n", ctx.run_dir / "report.txt")
     write_status(ctx, experiment, "ok", config_hash=config_hash, runs=runs)
     log.info("done in %.2f s", time.perf_counter() - total_started)
-    return RunOutcome(summary, metrics, format_summary(summary, experiment, runs))
+    return RunOutcome(summary, metrics, text)
 
 
 def describe_exception(exc: BaseException) -> tuple[str, str]:

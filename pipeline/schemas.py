@@ -65,7 +65,7 @@ def truth_to_frame(truth: Truth) -> tuple[pl.DataFrame, dict[str, str]]:
         cols.append(_array_column(name, values, rows))
         label_shapes[name] = list(values.shape[3:])
     meta = table_metadata("truth", {"state": list(truth.state_names), "labels": label_shapes},
-                          {"time": "s", "x": "m, m/s per state_names", "acceleration": "m/s^2"})
+                          {"time": "s", "x": "m, m/s (m/s^2 for ax, ay, az) per state_names", "acceleration": "m/s^2"})
     return pl.DataFrame(cols), meta
 
 
@@ -92,13 +92,19 @@ def detections_to_frame(d: Detections) -> tuple[pl.DataFrame, dict[str, str]]:
         _array_column("R", d.noise_covariance, rows), pl.Series("detected", detected),
         pl.Series("clutter", detected & (target < 0)),
     ])
-    meta = table_metadata("detections", {"measurement": list(d.measurement_names)},
-                          {"time": "s", "z": "m per measurement names", "R": "m^2, row-major m x m"})
+    names: dict[str, object] = {"measurement": list(d.measurement_names)}
+    units = {"time": "s", "z": "m per measurement names", "R": "m^2, row-major m x m"}
+    if d.measurement_units:
+        names["measurement_units"] = list(d.measurement_units)
+        units["z"] = ", ".join(f"{n}: {u}" for n, u in zip(d.measurement_names, d.measurement_units))
+        units["R"] = "row-major m x m, products of the z units"
+    meta = table_metadata("detections", names, units)
     return df, meta
 
 
 def detections_from_frame(df: pl.DataFrame, meta: Mapping[str, str]) -> Detections:
-    names = json.loads(meta[META_NAMES])["measurement"]
+    stated = json.loads(meta[META_NAMES])
+    names = stated["measurement"]
     R, K, D = _extent(df, "detection")
     m = len(names)
     first = df.filter((pl.col("run") == 0) & (pl.col("detection") == 0))
@@ -106,7 +112,7 @@ def detections_from_frame(df: pl.DataFrame, meta: Mapping[str, str]) -> Detectio
         time=first["time"].to_numpy(), sensor=first["sensor"].to_numpy(),
         z=_column_array(df, "z", (R, K, D, m)), noise_covariance=_column_array(df, "R", (R, K, D, m, m)),
         target=_column_array(df, "target", (R, K, D)), detected=_column_array(df, "detected", (R, K, D)),
-        measurement_names=tuple(names),
+        measurement_names=tuple(names), measurement_units=tuple(stated.get("measurement_units", ())),
     )
 
 

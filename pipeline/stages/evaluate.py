@@ -14,12 +14,19 @@ import polars as pl
 from filters.base import TrackEstimate
 from pipeline.data import Truth
 
+AXES = ("x", "y", "z")
+_COUNT = "count: sum over runs (and, in the summary, over the window's steps)"
 UNITS = {
-    "acceleration_rmse_x": "m/s^2", "acceleration_rmse_y": "m/s^2", "position_rmse": "m",
-    "velocity_rmse": "m/s", "nees": "1 (chi2 dof = n)", "models_evaluated": "models/step",
-    "compute_seconds": "s", "compute_pct_of_reference": "%", "models_pct_of_reference": "%",
-    "group_reached_fraction": "fraction of runs",
+    "acceleration_rmse_x": "m/s^2", "acceleration_rmse_y": "m/s^2", "acceleration_rmse_z": "m/s^2",
+    "acceleration_rmse": "m/s^2", "position_rmse": "m", "velocity_rmse": "m/s", "nees": "1 (chi2 dof = n)",
+    "models_evaluated": "models/step", "input_level_x": "m/s^2", "input_level_y": "m/s^2",
+    "input_level_z": "m/s^2", "detections": _COUNT, "detections_axis_x": _COUNT, "detections_axis_y": _COUNT,
+    "detections_axis_z": _COUNT, "compute_seconds": "s", "compute_pct_of_reference": "%",
+    "models_pct_of_reference": "%", "group_reached_fraction": "fraction of runs",
 }
+# Per-step metrics that are counts (summed over runs at each step): a summary window SUMS them over
+# its steps; every other per-step metric is AVERAGED over the window's steps.
+COUNT_METRICS = frozenset({"detections", "detections_axis_x", "detections_axis_y", "detections_axis_z"})
 
 
 @dataclass(frozen=True)
@@ -35,30 +42,64 @@ def _rmse(err: np.ndarray) -> np.ndarray:
 
 
 def per_step_metrics(truth: Truth, estimate: TrackEstimate) -> dict[str, np.ndarray]:
-    """Per-step Monte Carlo metrics (K,) of one variant against target 0's truth."""
+    """Per-step Monte Carlo metrics (K,) of one variant against target 0's truth.
+
+    Errors are taken in the truth's state order (``truth.state_names``; estimates use the same):
+
+    - ``position_rmse`` over x, y (and z when the state has it), ``velocity_rmse`` over vx, vy (vz);
+    - ``acceleration_rmse``: 3-D (or 2-D) norm over the state's ax, ay, az, when the state has them;
+    - ``acceleration_rmse_x/_y(/_z)``: per axis, from the estimator's ``acceleration`` extra against
+      the truth's ``acceleration`` label, when both exist (study 001);
+    - ``nees``: over the full state (chi-square with n = state size dof for a consistent filter);
+    - ``models_evaluated``: mean over runs of the extra of that name;
+    - ``input_level_x/_y/_z``: mean over runs of ``extras["input_level"]`` (R, K, 3) [m/s^2];
+    - ``detections``: SUM over runs of ``extras["maneuver_detected"]`` (R, K) at each step (a count);
+    - ``detections_axis_x/_y/_z``: the same for ``extras["maneuver_detected_axis"]`` (R, K, 3), in the
+      estimator's own axis order (filter C of study 000: its LOS axes, as in the paper's Table 1).
+    """
     names = truth.state_names
     x_true = truth.state[:, :, 0, :]
     err = estimate.state - x_true
-    pos = [names.index(n) for n in ("x", "y") if n in names]
-    vel = [names.index(n) for n in ("vx", "vy") if n in names]
+    pos = [names.index(n) for n in ("x", "y", "z") if n in names]
+    vel = [names.index(n) for n in ("vx", "vy", "vz") if n in names]
+    acc = [names.index(n) for n in ("ax", "ay", "az") if n in names]
+    extras = estimate.extras
     out: dict[str, np.ndarray] = {}
     with np.errstate(invalid="ignore"), _quiet_nanmean():
         out["position_rmse"] = _rmse(err[..., pos])
         if vel:
             out["velocity_rmse"] = _rmse(err[..., vel])
-        if "acceleration" in estimate.extras and "acceleration" in truth.labels:
-            acc_err = estimate.extras["acceleration"] - truth.labels["acceleration"][:, :, 0, :]
-            out["acceleration_rmse_x"] = _rmse(acc_err[..., :1])
-            out["acceleration_rmse_y"] = _rmse(acc_err[..., 1:2])
+        if acc:
+            out["acceleration_rmse"] = _rmse(err[..., acc])
+        if "acceleration" in extras and "acceleration" in truth.labels:
+            acc_err = extras["acceleration"] - truth.labels["acceleration"][:, :, 0, :]
+            for i in range(min(acc_err.shape[-1], len(AXES))):
+                out[f"acceleration_rmse_{AXES[i]}"] = _rmse(acc_err[..., i:i + 1])
         started = np.isfinite(estimate.state).all(axis=-1)
         P = np.where(started[..., None, None], estimate.covariance, np.eye(err.shape[-1]))
         e = np.where(started[..., None], err, 0.0)
         nees = np.einsum("rki,rki->rk", e, np.linalg.solve(P, e[..., None])[..., 0])
         out["nees"] = np.nanmean(np.where(started, nees, np.nan), axis=0)
-        if "models_evaluated" in estimate.extras:
-            evaluated = estimate.extras["models_evaluated"].astype(float)
+        if "models_evaluated" in extras:
+            evaluated = extras["models_evaluated"].astype(float)
             out["models_evaluated"] = np.where(started.any(axis=0), evaluated.mean(axis=0), np.nan)
+        if "input_level" in extras:
+            level = np.asarray(extras["input_level"], dtype=float)
+            for i in range(min(level.shape[-1], len(AXES))):
+                out[f"input_level_{AXES[i]}"] = np.nanmean(level[..., i], axis=0)
+        if "maneuver_detected" in extras:
+            out["detections"] = _count(extras["maneuver_detected"])
+        if "maneuver_detected_axis" in extras:
+            per_axis = np.asarray(extras["maneuver_detected_axis"])
+            for i in range(min(per_axis.shape[-1], len(AXES))):
+                out[f"detections_axis_{AXES[i]}"] = _count(per_axis[..., i])
     return out
+
+
+def _count(flags: np.ndarray) -> np.ndarray:
+    """(R, K) 0/1 flags (NaN counts as 0) -> (K,) number of runs flagged at each step."""
+    values = np.asarray(flags, dtype=float)
+    return np.sum((values != 0) & np.isfinite(values), axis=0).astype(float)
 
 
 class _quiet_nanmean:
@@ -100,11 +141,24 @@ def group_reached(estimate: TrackEstimate, group: int, by_step: int) -> float | 
     return float(((active == group) | (candidate == group)).any(axis=1).mean())
 
 
+def window_value(metric: str, values: np.ndarray, w: Window) -> float:
+    """A per-step metric over a window: the sum for a count metric, else the mean (NaN steps ignored);
+    NaN when the window holds no step (or, for a mean, no finite value)."""
+    segment = values[w.first_step: w.last_step + 1]
+    if not segment.size:
+        return float("nan")
+    if metric in COUNT_METRICS:
+        return float(np.nansum(segment))
+    with _quiet_nanmean():
+        return float(np.nanmean(segment))
+
+
 def summary_rows(variants: Mapping[str, tuple[str, dict[str, np.ndarray]]], estimates: Mapping[str, TrackEstimate],
                  windows: Sequence[Window], reference_key: str | None, runs: int,
-                 reached: tuple[str, int, int] | None = None) -> pl.DataFrame:
-    """Per variant: each per-step metric averaged over each window, compute time, models per step
-    (and both as % of the reference variant), and optionally the fraction of runs reaching a group."""
+                 reached: tuple[str, int, int] | None = None, count_windows: Sequence[Window] = ()) -> pl.DataFrame:
+    """Per variant: each per-step metric over each window (averaged; counts summed, see COUNT_METRICS),
+    the count metrics also over each of ``count_windows``, compute time, models per step (and both as %
+    of the reference variant), and optionally the fraction of runs reaching a group."""
     rows: list[dict] = []
 
     def add(key, display, metric, window, value):
@@ -115,9 +169,11 @@ def summary_rows(variants: Mapping[str, tuple[str, dict[str, np.ndarray]]], esti
     for key, (display, metrics) in variants.items():
         for w in windows:
             for metric, values in metrics.items():
-                segment = values[w.first_step: w.last_step + 1]
-                with _quiet_nanmean():
-                    add(key, display, metric, w.name, np.nanmean(segment) if segment.size else np.nan)
+                add(key, display, metric, w.name, window_value(metric, values, w))
+        for w in count_windows:
+            for metric, values in metrics.items():
+                if metric in COUNT_METRICS:
+                    add(key, display, metric, w.name, window_value(metric, values, w))
         add(key, display, "compute_seconds", None, estimates[key].compute_seconds)
         if reached is not None:
             name, group, by_step = reached

@@ -1,13 +1,32 @@
-"""Report: the variant x metric table printed at the end of a run."""
+"""Report: the variant x metric table printed at the end of a run, and study-specific tables.
+
+``format_summary`` prints the summary (variant x metric, one block per window) for every
+experiment. An experiment can add its own tables under ``report.tables`` (a mapping name ->
+config node with ``_target_``): the runner builds each node before any stage runs and, after the
+summary, prints ``table.render(ReportContext)`` for each, in order. A table is any object with
+``render(ctx: ReportContext) -> str``; if it has ``variant_keys`` (the variants it reads), the
+runner checks them against the experiment's ``filters``. ``BinnedTable`` is the generic one:
+per-step metrics summed (or averaged) over step bins, ours beside reference values (a paper's
+table) kept in the experiment's YAML.
+"""
 
 from __future__ import annotations
 
+import math
+from dataclasses import dataclass, field
+from typing import Any, Mapping, Protocol, Sequence
+
+import numpy as np
 import polars as pl
 
-SHOWN = [("acceleration_rmse_x", "acc RMSE X"), ("acceleration_rmse_y", "acc RMSE Y"), ("position_rmse", "pos RMSE"),
+SHOWN = [("acceleration_rmse_x", "acc RMSE X"), ("acceleration_rmse_y", "acc RMSE Y"),
+         ("acceleration_rmse_z", "acc RMSE Z"), ("acceleration_rmse", "acc RMSE"), ("position_rmse", "pos RMSE"),
          ("velocity_rmse", "vel RMSE"), ("nees", "NEES"), ("models_evaluated", "models/step"),
          ("models_pct_of_reference", "models %"), ("group_reached_fraction", "reached"),
+         ("detections", "detections"), ("detections_axis_x", "det x"), ("detections_axis_y", "det y"),
+         ("detections_axis_z", "det z"),
          ("compute_seconds", "compute s"), ("compute_pct_of_reference", "compute %")]
+_COUNTS = {"detections", "detections_axis_x", "detections_axis_y", "detections_axis_z"}
 
 
 def format_summary(summary: pl.DataFrame, experiment: str, runs: int) -> str:
@@ -39,6 +58,8 @@ def format_summary(summary: pl.DataFrame, experiment: str, runs: int) -> str:
 
 
 def _fmt(metric: str, value: float) -> str:
+    if metric in _COUNTS:
+        return "" if math.isnan(value) else f"{value:.0f}"
     if metric.endswith("pct_of_reference"):
         return f"{value:.1f}"
     if metric == "compute_seconds":
@@ -46,3 +67,213 @@ def _fmt(metric: str, value: float) -> str:
     if metric == "group_reached_fraction":
         return f"{value:.2f}"
     return f"{value:.2f}"
+
+
+# ---- study-specific tables ---------------------------------------------------------------------
+@dataclass(frozen=True)
+class ReportContext:
+    """What a report table may read: the run's tables as the runner wrote them.
+
+    ``variants`` maps variant key -> display name, in run order (only the variants that ran);
+    ``metrics`` is the long per-step frame (variant_key, metric, step, time, value, ...);
+    ``summary`` the summary frame.
+    """
+
+    experiment: str
+    runs: int
+    variants: Mapping[str, str]
+    metrics: pl.DataFrame
+    summary: pl.DataFrame
+    extra: Mapping[str, Any] = field(default_factory=dict)
+
+
+class ReportTable(Protocol):
+    def render(self, ctx: ReportContext) -> str: ...
+
+
+@dataclass(frozen=True)
+class _Column:
+    label: str
+    variant: str
+    metrics: tuple[str, ...]
+    parts: tuple[str, ...]
+
+
+@dataclass(frozen=True)
+class _Row:
+    first: int
+    last: int
+    reference: tuple[float | None, ...]
+
+    @property
+    def label(self) -> str:
+        return str(self.first) if self.first == self.last else f"{self.first}-{self.last}"
+
+
+class BinnedTable:
+    """Per-step metrics of some variants, summed (or averaged) over step bins, each beside a
+    reference value (a paper's table).
+
+    Parameters
+    ----------
+    title : first line printed
+    columns : list of {label, variant, metrics, parts}: one column pair "ours LABEL" / "REF LABEL"
+        per entry; ``variant`` is a variant key (``filters.<key>``); ``metrics`` one or more
+        per-step metric names from metrics.parquet (several print in one cell joined by "/", e.g.
+        the per-axis counts of one filter, with ``parts`` naming them: [x, y, z])
+    rows : list of {steps, reference}: ``steps`` an inclusive step range [first, last] or one step;
+        ``reference`` the reference values, one per metric over all columns in order (null: none)
+    aggregate : sum (counts, e.g. detections) | mean
+    reference_label : the reference columns' name, e.g. "paper"
+    reference_runs : the reference's number of Monte Carlo runs (printed beside ours; counts scale
+        with it)
+    row_header : the first column's header
+    total_row : also print the sum over all rows (aggregate = sum only)
+    note : a line printed under the title
+    """
+
+    def __init__(self, title: str, columns: Sequence[Mapping[str, Any]], rows: Sequence[Mapping[str, Any]],
+                 aggregate: str = "sum", reference_label: str = "paper", reference_runs: int | None = None,
+                 row_header: str = "step", total_row: bool = True, note: str = "") -> None:
+        if aggregate not in ("sum", "mean"):
+            raise ValueError(f"aggregate: {aggregate!r} is not one of ['sum', 'mean']")
+        if not columns:
+            raise ValueError("columns: at least one column is needed")
+        cols = []
+        for i, c in enumerate(columns):
+            c = dict(c)
+            unknown = set(c) - {"label", "variant", "metrics", "parts"}
+            if unknown or "variant" not in c or "metrics" not in c:
+                raise ValueError(f"columns[{i}]: {c} must be {{label, variant, metrics[, parts]}}"
+                                 + (f"; unknown key(s) {sorted(unknown)}" if unknown else ""))
+            metrics = (c["metrics"],) if isinstance(c["metrics"], str) else tuple(str(m) for m in c["metrics"])
+            if not metrics:
+                raise ValueError(f"columns[{i}].metrics: name at least one per-step metric")
+            parts = tuple(str(p) for p in c.get("parts") or ())
+            if parts and len(parts) != len(metrics):
+                raise ValueError(f"columns[{i}].parts: {list(parts)} names {len(parts)} parts for "
+                                 f"{len(metrics)} metrics {list(metrics)}")
+            cols.append(_Column(str(c.get("label", c["variant"])), str(c["variant"]), metrics, parts))
+        width = sum(len(c.metrics) for c in cols)
+        parsed = []
+        for i, r in enumerate(rows):
+            r = dict(r)
+            unknown = set(r) - {"steps", "reference"}
+            if unknown or "steps" not in r:
+                raise ValueError(f"rows[{i}]: {r} must be {{steps, reference}}"
+                                 + (f"; unknown key(s) {sorted(unknown)}" if unknown else ""))
+            steps = r["steps"]
+            if isinstance(steps, int):
+                first, last = steps, steps
+            elif isinstance(steps, (list, tuple)) and len(steps) == 2:
+                first, last = steps
+            else:
+                first = last = None
+            if not (isinstance(first, int) and isinstance(last, int) and 0 <= first <= last):
+                raise ValueError(f"rows[{i}].steps: {steps!r} must be a step >= 0 or [first, last] with "
+                                 f"0 <= first <= last")
+            ref = r.get("reference")
+            ref = [None] * width if ref is None else list(ref)
+            if len(ref) != width:
+                raise ValueError(f"rows[{i}].reference: {ref} holds {len(ref)} values; the columns "
+                                 f"{[c.label for c in cols]} have {width} metrics, one value each")
+            parsed.append(_Row(first, last, tuple(None if v is None else float(v) for v in ref)))
+        self.title = str(title)
+        self.columns = cols
+        self.rows = parsed
+        self.aggregate = aggregate
+        self.reference_label = str(reference_label)
+        self.reference_runs = None if reference_runs is None else int(reference_runs)
+        self.row_header = str(row_header)
+        self.total_row = bool(total_row) and aggregate == "sum"
+        self.note = str(note)
+
+    @property
+    def variant_keys(self) -> tuple[str, ...]:
+        return tuple(dict.fromkeys(c.variant for c in self.columns))
+
+    def values(self, ctx: ReportContext) -> list[list[list[float | None]]]:
+        """ours[row][column][metric]; None where the variant did not run or has no such metric."""
+        series: dict[tuple[str, str], np.ndarray] = {}
+        if ctx.metrics.height:
+            for (variant, metric), part in ctx.metrics.group_by(["variant_key", "metric"]):
+                part = part.sort("step")
+                values = np.full(int(part["step"].max()) + 1, np.nan)
+                values[part["step"].to_numpy()] = part["value"].to_numpy()
+                series[(variant, metric)] = values
+        out = []
+        for row in self.rows:
+            cells = []
+            for c in self.columns:
+                cell = []
+                for m in c.metrics:
+                    values = series.get((c.variant, m)) if c.variant in ctx.variants else None
+                    segment = None if values is None else values[row.first: row.last + 1]
+                    if segment is None or segment.size == 0 or np.isnan(segment).all():
+                        cell.append(None)
+                    else:
+                        cell.append(float(np.nansum(segment) if self.aggregate == "sum" else np.nanmean(segment)))
+                cells.append(cell)
+            out.append(cells)
+        return out
+
+    def render(self, ctx: ReportContext) -> str:
+        ours = self.values(ctx)
+        header = [self.row_header]
+        for c in self.columns:
+            suffix = f" {'/'.join(c.parts)}" if c.parts else ""
+            header += [f"ours {c.label}{suffix}", f"{self.reference_label} {c.label}{suffix}"]
+        table = [header]
+        for row, cells in zip(self.rows, ours):
+            line, i = [row.label], 0
+            for c, cell in zip(self.columns, cells):
+                ref = row.reference[i: i + len(c.metrics)]
+                i += len(c.metrics)
+                line += [self._cell(cell), self._cell(ref)]
+            table.append(line)
+        if self.total_row and self.rows:
+            line, i = ["total"], 0
+            for j, c in enumerate(self.columns):
+                n = len(c.metrics)
+                mine = [_sum([cells[j][k] for cells in ours]) for k in range(n)]
+                ref = [_sum([row.reference[i + k] for row in self.rows]) for k in range(n)]
+                i += n
+                line += [self._cell(mine), self._cell(ref)]
+            table.append(line)
+        widths = [max(len(r[i]) for r in table) for i in range(len(header))]
+        lines = [self.title]
+        runs = f"ours: {ctx.runs} Monte Carlo runs"
+        if self.reference_runs is not None:
+            runs += f"; {self.reference_label}: {self.reference_runs} runs"
+        missing = [v for v in self.variant_keys if v not in ctx.variants]
+        if missing:
+            runs += f"; not run here: {', '.join(missing)} (shown as -)"
+        lines.append(runs)
+        if self.note:
+            lines.append(self.note)
+        lines.append("")
+        sep = "  ".join("-" * w for w in widths)
+        for n, r in enumerate(table):
+            if n == len(table) - 1 and self.total_row and self.rows:
+                lines.append(sep)
+            lines.append("  ".join(cell.ljust(widths[j]) if j == 0 else cell.rjust(widths[j])
+                                   for j, cell in enumerate(r)))
+            if n == 0:
+                lines.append(sep)
+        return "\n".join(lines)
+
+    def _cell(self, values: Sequence[float | None]) -> str:
+        if all(v is None for v in values) and len(values) > 1:
+            return "-"
+        return "/".join("-" if v is None else _number(v) for v in values)
+
+
+def _sum(values: Sequence[float | None]) -> float | None:
+    present = [v for v in values if v is not None]
+    return float(sum(present)) if present else None
+
+
+def _number(value: float) -> str:
+    if math.isnan(value):
+        return "-"
+    return f"{value:.0f}" if float(value).is_integer() else f"{value:.2f}"
