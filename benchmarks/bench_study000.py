@@ -1,0 +1,60 @@
+"""Study 000 compute benchmark: filters A, A-full, B, C on the spec's scenario (filtering only).
+
+    python benchmarks/bench_study000.py --runs 100
+
+The spec's target: B (decoupled LOS filter, scalar per-axis MIE) costs at most half of A (coupled
+inertial filter, 3x3 MIE). Inputs are built from the experiment's own configs. Best of --repeat.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+import numpy as np  # noqa: E402
+from hydra.utils import instantiate  # noqa: E402
+from omegaconf import OmegaConf  # noqa: E402
+
+from pipeline.stages.track import measurement_series  # noqa: E402
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--runs", type=int, default=100)
+    parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument("--repeat", type=int, default=3)
+    parser.add_argument("--json", type=Path, default=ROOT / "artifacts" / "benchmarks" / "study000.json")
+    args = parser.parse_args()
+    conf = ROOT / "conf"
+    truth = instantiate(OmegaConf.load(conf / "scenario" / "mie_los.yaml"), _convert_="all").generate(args.runs, args.seed)
+    detections = instantiate(OmegaConf.load(conf / "sensors" / "radar3d.yaml"), _convert_="all").measure(truth, args.seed)
+    series = measurement_series(detections)
+    rows = []
+    for key in ("mie_a", "mie_a_full", "mie_b", "mie_c"):
+        node = OmegaConf.load(conf / "filter" / f"{key}.yaml")
+        if "defaults" in node:
+            base = OmegaConf.load(conf / "filter" / f"{node.defaults[0]}.yaml")
+            node = OmegaConf.merge(base, {k: v for k, v in node.items() if k != "defaults"})
+        estimator = instantiate(node, _convert_="all")
+        seconds = min(estimator.run(series).compute_seconds for _ in range(args.repeat))
+        rows.append({"filter": estimator.name, "seconds": seconds})
+    reference = rows[0]["seconds"]
+    print(f"Study 000, {args.runs} runs x {truth.time.size} scans, best of {args.repeat} (filtering only)\n")
+    print("| filter | seconds | % of A |\n|---|---:|---:|")
+    for row in rows:
+        row["pct_of_a"] = 100.0 * row["seconds"] / reference
+        print(f"| {row['filter']} | {row['seconds']:.3f} | {row['pct_of_a']:.1f} |")
+    args.json.parent.mkdir(parents=True, exist_ok=True)
+    args.json.write_text(json.dumps({"runs": args.runs, "rows": rows}, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
