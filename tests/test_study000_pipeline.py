@@ -261,11 +261,12 @@ def run_study(tmp_path: Path, name: str, *overrides: str, variants=("a", "b", "c
     return run_experiment(cfg, ctx), ctx
 
 
-def test_experiment_composes_with_the_four_variants_and_the_paper_table():
+def test_experiment_composes_with_the_variants_and_the_paper_table():
     with initialize_config_dir(version_base="1.3", config_dir=str(CONF)):
         cfg = compose("config", overrides=["experiment=mie_los"])
     assert cfg.experiment_name == "mie_los"
-    assert list(cfg.filters) == ["a", "a_full", "b", "c"]
+    assert list(cfg.filters) == ["a", "a_full", "b", "c", "b_nocomp"]       # the paper's four + the control
+    assert cfg.filters.b_nocomp.compensate is False and cfg.filters.b_nocomp.test == "pooled"
     assert cfg.filters.a._target_ == "filters.input_estimation.InertialMIE"
     assert cfg.filters.c._target_ == "filters.input_estimation.LOSMIE" and cfg.filters.c.test == "per_axis"
     assert cfg.metrics.reference_variant == "a"
