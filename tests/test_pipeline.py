@@ -170,3 +170,13 @@ def test_a_failed_job_is_recorded_and_the_others_stay_queryable(tmp_path):
     failed = df.filter(pl.col("status") == "failed")
     assert failed.height == 1 and "mc.runs: 0" in failed["error"][0] and failed["mc.runs"][0] == 0
     assert df.filter(pl.col("status") == "ok")["mc.runs"].unique().to_list() == [2]
+
+
+def test_every_experiment_file_runs_end_to_end(tmp_path):
+    """A multirun over glob(*): every experiment in conf/experiment composes, runs and is queryable."""
+    proc = cli(tmp_path, "-m", "experiment=glob(*)", "mc.runs=2", "record.enabled=false", timeout=300)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    from pipeline.query import query
+    experiments = sorted(p.stem for p in (ROOT / "conf" / "experiment").glob("*.yaml"))
+    runs = query("SELECT experiment, status FROM runs ORDER BY experiment", root=tmp_path)
+    assert runs["experiment"].to_list() == experiments and set(runs["status"]) == {"ok"}
