@@ -29,6 +29,9 @@ class MeasurementSeries:
         False marks a missed detection (no measurement at that scan).
     sensor : (K,) int
         Which sensor produced each scan.
+    sensor_position : (d,) float or None
+        Position of a static sensor in the truth's frame, for measurements taken relative to it
+        (a radar's range and angles); None means the origin.
     """
 
     time: np.ndarray
@@ -36,6 +39,7 @@ class MeasurementSeries:
     noise_covariance: np.ndarray
     detected: np.ndarray
     sensor: np.ndarray
+    sensor_position: np.ndarray | None = None
 
     @property
     def runs(self) -> int:

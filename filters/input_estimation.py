@@ -11,7 +11,8 @@ Two base filters, both batched over Monte Carlo runs:
   where the saving is.
 
 State layout inside: (R, axis, kinematic) with kinematic = (p, v, a); outputs are inertial,
-ordered (x, y, z, vx, vy, vz, ax, ay, az). The radar is at the origin.
+ordered (x, y, z, vx, vy, vz, ax, ay, az). The filters work in radar-centred coordinates (the LOS
+frame points from the radar) and add ``measurements.sensor_position`` back to the output positions.
 
 MIE per scan k (notes 2.4, A-H): l onset hypotheses n in [max(k - l - N_id + 1, k_c), k - N_id]
 over the data window k - l - N_id + 2..k (spec 000: l = 5 candidate onset times); innovations score the samples i <= n, pseudo-residuals (eq 26) the samples i > n;
@@ -78,6 +79,17 @@ class _MIEBase:
         self.Q = singer_process_noise(dt, self.tau, self.sigma_m)
         self.G = singer_input_gain(dt, self.tau)
         self.dt = dt
+
+    @staticmethod
+    def _radar_offset(measurements: MeasurementSeries) -> np.ndarray:
+        """(9,) added to the radar-centred outputs: the radar's position in the position slots."""
+        offset = np.zeros(9)
+        if measurements.sensor_position is not None:
+            position = np.asarray(measurements.sensor_position, dtype=float)
+            if position.shape != (3,):
+                raise ValueError(f"measurements.sensor_position: shape {position.shape}; expected (3,) [x, y, z]")
+            offset[:3] = position
+        return offset
 
     @staticmethod
     def _checked(measurements: MeasurementSeries) -> tuple[np.ndarray, np.ndarray, float]:
@@ -215,6 +227,7 @@ class LOSMIE(_MIEBase):
                   "onset_step": onset_out}
         if self.test == "per_axis":
             extras["maneuver_detected_axis"] = axis_out
+        out_x += self._radar_offset(measurements)
         return TrackEstimate(measurements.time, out_x, out_P, extras, time.perf_counter() - started)
 
     @staticmethod
@@ -446,6 +459,7 @@ class InertialMIE(_MIEBase):
             self._output(out_x, out_P, level_out, k, x, P, u)
         extras = {"input_level": level_out, "maneuver_detected": detected_out, "test_statistic": stat_out,
                   "onset_step": onset_out}
+        out_x += self._radar_offset(measurements)
         return TrackEstimate(measurements.time, out_x, out_P, extras, time.perf_counter() - started)
 
     @staticmethod

@@ -219,7 +219,7 @@ def run_experiment(cfg: DictConfig, ctx: RunContext) -> RunOutcome:
     measure_key = stage_key("measure", {"sensors": resolved["sensors"], "seed": seed}, (scenario_key,))
     detections, _ = stages.run("measure", measure_key, "detections", lambda: sensor.measure(truth, seed),
                                schemas.detections_to_frame, Path("detections.parquet"), f"{runs} runs x {K} scans")
-    series = measurement_series(detections)
+    series = measurement_series(detections, sensor_position=getattr(sensor, "position", None))
 
     estimates: dict[str, TrackEstimate] = {}
     display: dict[str, str] = {}

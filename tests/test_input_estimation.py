@@ -114,3 +114,16 @@ def test_bad_settings_are_refused():
         InertialMIE(window=2, min_samples=3)
     with pytest.raises(ValueError, match="rearm_after"):
         LOSMIE(rearm_after=1)
+
+
+def test_a_radar_away_from_the_origin_gives_the_same_errors():
+    """The filters work radar-centred and add the radar position back: moving radar and target
+    together by the same offset changes nothing but the output positions."""
+    truth = straight_then_maneuver()
+    offset = np.array([2500.0, -1200.0, 300.0])
+    base = radar(truth, runs=3, seed=4)
+    moved = MeasurementSeries(base.time, base.z, base.noise_covariance, base.detected, base.sensor, offset)
+    for f in (InertialMIE("A"), LOSMIE("B")):
+        a, b = f.run(base), f.run(moved)
+        np.testing.assert_allclose(b.state[:, 1:, :3] - offset, a.state[:, 1:, :3], atol=1e-6)
+        np.testing.assert_allclose(b.state[:, 1:, 3:], a.state[:, 1:, 3:], atol=1e-9)
