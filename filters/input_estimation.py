@@ -22,15 +22,25 @@ and a detection compensates state (eq 34), covariance (eq 37, with M Cov M', the
 is a typo), level (eq 38) and, in the LOS filter, re-points the frame (eqs 39-44).
 
 Closed-loop stability (spec 000, designed here): implemented literally, the detect-compensate
-loop re-detects a sign-flipped correction every N_id steps and runs away. Two changes stop it:
+loop re-detects a sign-flipped correction every N_id steps and runs away (669 detections in
+t = 75-100 at 100 runs; spec: ~750). Three changes make it stable:
 
-1. the test re-arms only after ``rearm_after`` (default l = 5) scans of new data since the last
-   compensation k_c, and hypotheses never reach back before k_c;
-2. the old level is not treated as exact in eq 31: its estimate carries the covariance Sigma_u of
-   the compensation that set it (rotated with the frame), and the test uses
-   Cov(u_hat - u_old) = Sigma_u(n_hat) + Sigma_old. This neglects the correlation between the
-   old level's error and the compensated velocity's error (both come from the same estimate; the
-   compensated velocity's own uncertainty is already in P through eq 37, so it enters S_n(i)).
+1. the test re-arms only after ``rearm_after`` scans of new data since the last compensation k_c
+   (default: the full data window, l + N_id - 1), and hypotheses never reach back before k_c;
+2. the old level is not exact in eq 31. A compensation sets it from an estimate with covariance
+   Sigma_old, and its error eps also biases the compensated velocity by J_v eps (J, the state's
+   sensitivity to a level error, is tracked through every scan), hence the new estimate by
+   -c T J_v eps with c = sum N/S / sum N^2/S. So Delta = u_hat - u_old has error xi - G eps with
+   G = I + c T J_v, and the test uses Cov(Delta) = Sigma_u + G Sigma_old G' (eq 32's cross
+   terms between the old level and the compensated velocity). A new level's covariance keeps the
+   old error's share, (G - I) Sigma_old (G - I)';
+3. because a wrong level would then be shielded from correction, a quiet test still learns from
+   Delta: once per window of new data the MMSE estimate of eps given Delta is removed from the
+   level (and through J from the state), and Sigma_old shrinks to its posterior ("soft update",
+   on with level_uncertainty and level_correlation; per LOS axis in B and C, full 3x3 in A).
+
+Without 3, wrong levels persist: B's position RMSE over t = 61-100 was 55.5 m against 39.6 m with
+compensation off; with it 43.0 m, and B detects 0.13 times per run after t = 75.
 """
 
 from __future__ import annotations
@@ -289,6 +299,7 @@ class LOSMIE(_MIEBase):
             gain_eps = np.eye(3) + (w_sum / A)[..., None] * dt * sens_v_hist[:, onsets]
             old_var = np.einsum("rhab,rhbc,rhac->rha", gain_eps, cov_n, gain_eps)
         else:
+            gain_eps = np.broadcast_to(np.eye(3), cov_n.shape)
             old_var = np.diagonal(cov_n, axis1=2, axis2=3)
         valid = armed[:, None, :] & (onsets[None, :, None] >= k_c[:, None, :])
         # (H, R, 3) for the selection below
@@ -305,6 +316,7 @@ class LOSMIE(_MIEBase):
             det = ok & (stat > self.threshold)
             det_axes = np.broadcast_to(det[:, None], (R, 3)).copy()
             stat = np.where(ok, stat, np.nan)
+            quiet = np.broadcast_to((ok & ~det)[:, None], (R, 3))
         else:
             masked = np.where(valid, scores, -np.inf)
             best_axes = np.argmax(masked, axis=0)                                              # (R, 3)
@@ -314,14 +326,50 @@ class LOSMIE(_MIEBase):
             stat_axes = delta * delta / pick(test_var)
             det_axes = ok & (stat_axes > self.threshold)
             stat = np.where(ok.any(axis=1), np.where(ok, stat_axes, -np.inf).max(axis=1), np.nan)
+            quiet = ok & ~det_axes
         onset = np.where(det_axes.any(axis=1), k - np.asarray(hyps)[best_axes[:, 0] if self.test == "pooled"
                                                                     else best_axes.max(axis=1)], -1)
+        pick_h = lambda arr: np.take_along_axis(arr, best_axes[None], axis=0)[0]       # noqa: E731  (H,R,3)->(R,3)
+        if self.compensate and self.level_uncertainty and self.level_correlation:
+            # The test treats the old level's error eps as noise, so an error below ~4 sigma_old is never
+            # corrected by a detection. Delta = xi - G eps carries information on eps: when the test does
+            # not fire, take the MMSE estimate of eps (once per window of new data), remove it from the level
+            # and, through the tracked sensitivity J, from the state, and shrink the level's covariance.
+            soft = quiet & ((k - k_c) % self.rearm_after == 0)
+            if soft.any():
+                g = pick_h(np.moveaxis(np.diagonal(gain_eps, axis1=2, axis2=3), 1, 0))
+                s_old = pick_h(np.moveaxis(np.diagonal(cov_n, axis1=2, axis2=3), 1, 0))
+                s_new = pick_h(variances)
+                denom = g * g * s_old + s_new
+                eps_n = np.where(soft, -g * s_old * delta / np.where(denom > 0, denom, 1.0), 0.0)
+                post = s_old - (g * s_old) ** 2 / np.where(denom > 0, denom, 1.0)
+                eps_k = np.zeros_like(u)
+                for h, d in enumerate(hyps):
+                    on_h = soft & (best_axes == h)
+                    if on_h.any():
+                        eps_k += np.einsum("rab,rb->ra", T @ np.swapaxes(frames[:, k - d], 1, 2), eps_n * on_h)
+                u = u - eps_k
+                x = x - np.einsum("rakj,rj->rak", sens, eps_k)
+                # the update is per axis, i.e. treats the axes' level errors as independent: keep the level
+                # covariance diagonal for these runs (the diagonal of a PSD matrix is PSD; writing only the
+                # diagonal beside stale off-diagonal terms can make it indefinite)
+                diag = np.diagonal(level_cov, axis1=1, axis2=2)
+                touched = soft.any(axis=1)
+                new_diag = np.where(soft, np.maximum(post, 0.0), diag)
+                level_cov = np.where(touched[:, None, None], np.einsum("ra,ab->rab", new_diag, np.eye(3)), level_cov)
         if not (self.compensate and det_axes.any()):
             return x, P, u, level_cov, T, k_c, sens, det_axes, stat, onset
 
         # ---- compensation (eqs 34-44) for the detected (run, axis) pairs --------------------------
         delta = np.where(det_axes, delta, 0.0)
         sigma = np.where(det_axes, np.take_along_axis(variances, best_axes[None], axis=0)[0], 0.0)
+        if self.level_uncertainty and self.level_correlation:
+            # the new level's error is xi - (G - I) eps: keep (G - I) Sigma_old (G - I)' in its covariance
+            Kc = gain_eps - np.eye(3)
+            sigma_level = sigma + np.where(det_axes, pick_h(np.moveaxis(
+                np.einsum("rhab,rhbc,rhac->rha", Kc, cov_n, Kc), 1, 0)), 0.0)
+        else:
+            sigma_level = sigma
         dx = np.zeros_like(x)
         dP = np.zeros_like(P)
         du = np.zeros_like(u)
@@ -341,7 +389,7 @@ class LOSMIE(_MIEBase):
             dx += np.einsum("rakj,rj->rak", M, delta)
             dP += np.einsum("rakj,rj,ralj->rakl", M, sigma, M)                                  # eq 37, per-axis blocks
             du += np.einsum("rab,rb->ra", T @ np.swapaxes(frames[:, n], 1, 2), delta * use)     # eq 38
-            new_cov += np.where(use, sigma, 0.0)
+            new_cov += np.where(use, sigma_level, 0.0)
         x, P, u = x + dx, P + dP, u + du
         # the level's covariance: the detected axes' estimates replace the old ones
         keep = ~det_axes
@@ -475,7 +523,7 @@ class InertialMIE(_MIEBase):
         rows = np.arange(R)
         first = k - self._span + 1
         vel = [1, 4, 7]
-        scores, inputs, covs, valid, old_covs = [], [], [], [], []
+        scores, inputs, covs, valid, old_covs, gains = [], [], [], [], [], []
         for d in hyps:
             n = k - d
             innov = np.zeros(R)
@@ -502,7 +550,9 @@ class InertialMIE(_MIEBase):
                 gain_eps = np.eye(3) + A_inv @ W @ (dt * sens_v_hist[:, n])
                 old_covs.append(gain_eps @ level_cov @ np.swapaxes(gain_eps, 1, 2))
             else:
+                gain_eps = np.broadcast_to(np.eye(3), level_cov.shape)
                 old_covs.append(level_cov)
+            gains.append(gain_eps)
             u_hat = np.einsum("rij,rj->ri", A_inv, b)
             L = -0.5 * innov - 0.5 * quad + 0.5 * np.einsum("ri,rij,rj->r", u_hat, A, u_hat)
             cross = np.zeros((R, 3, 3))
@@ -529,6 +579,17 @@ class InertialMIE(_MIEBase):
         det = ok & (stat > self.threshold)
         stat = np.where(ok, stat, np.nan)
         onset = np.where(det, k - np.asarray(hyps)[best], -1)
+        G = np.stack(gains)[best, rows]                                          # (R, 3, 3)
+        if self.compensate and self.level_uncertainty and self.level_correlation:
+            # see LOSMIE: MMSE estimate of the old level's error from Delta = xi - G eps when the test is quiet
+            soft = ok & ~det & ((k - k_c) % self.rearm_after == 0)
+            if soft.any():
+                SG = level_cov @ np.swapaxes(G, 1, 2)
+                gain = SG @ np.linalg.inv(sigma_u + G @ SG)
+                eps = -np.einsum("rij,rj->ri", gain, delta) * soft[:, None]
+                u = u - eps
+                x = x - np.einsum("rij,rj->ri", sens, eps)
+                level_cov = np.where(soft[:, None, None], level_cov - gain @ np.swapaxes(SG, 1, 2), level_cov)
         if not (self.compensate and det.any()):
             return x, P, u, level_cov, k_c, sens, det, stat, onset
         delta = np.where(det[:, None], delta, 0.0)
@@ -549,7 +610,9 @@ class InertialMIE(_MIEBase):
         x = x + np.einsum("rij,rj->ri", M, delta)                                # eq 34
         P = P + M @ np.where(det[:, None, None], sigma_u, 0.0) @ np.swapaxes(M, 1, 2)   # eq 37
         u = u + delta                                                            # eq 38
-        level_cov = np.where(det[:, None, None], sigma_u, level_cov)
+        Kc = G - np.eye(3)                               # the new level's error is xi - (G - I) eps
+        new_level_cov = sigma_u + (Kc @ level_cov @ np.swapaxes(Kc, 1, 2) if self.level_correlation else 0.0)
+        level_cov = np.where(det[:, None, None], new_level_cov, level_cov)
         sens = np.where(det[:, None, None], M, sens)
         k_c = np.where(det, k, k_c)
         return x, P, u, level_cov, k_c, sens, det, stat, onset

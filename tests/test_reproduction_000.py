@@ -50,6 +50,14 @@ def test_detections_peak_3_to_7_steps_after_the_maneuver_starts_and_ends(study, 
 
 
 @pytest.mark.slow
+def test_no_track_diverges(study):
+    """Every variant stays near the measurement-noise level overall (a divergent run would dominate)."""
+    out, _ = study
+    for variant in ("a", "a_full", "b", "c", "b_nocomp"):
+        assert window(out, variant, "position_rmse", "all") < 60.0, variant
+
+
+@pytest.mark.slow
 def test_full_covariance_test_has_no_more_false_alarms_than_b(study):
     out, _ = study
     assert false_alarms(out, "a_full") <= false_alarms(out, "b")
@@ -68,25 +76,23 @@ def test_a_and_b_track_alike_and_c_leaves_the_elevation_axis_mostly_silent(study
 @pytest.mark.slow
 def test_the_detect_compensate_loop_does_not_run_away(study):
     """Literal loop (re-test N_id scans after a compensation, old level exact): several detections
-    per run after t = 75 (spec: ~7.5/run). The designed loop: about one or fewer."""
+    per run after t = 75 (spec: ~7.5/run). The designed loop: well under one per run."""
     out, literal = study
     assert window(literal, "b", "detections", "t75-100") / RUNS > 4.0
-    assert window(out, "b", "detections", "t75-100") / RUNS < 1.5
+    assert window(out, "b", "detections", "t75-100") / RUNS < 1.0
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason="measured at 100 runs: A 89 vs B 105 false detections (paper 196 vs 56); "
-                                       "with re-arming and the level covariance both filters' false alarms are "
-                                       "dominated by re-detections after compensations, not by A's correlated test")
 def test_a_has_more_than_twice_the_false_alarms_of_b(study):
+    """The paper's point: A's per-axis-sum test ignores the converted noise's correlation (100 runs: A 33, B 16)."""
     out, _ = study
     assert false_alarms(out, "a") > 2 * false_alarms(out, "b")
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason="measured at 100 runs: B 55.5 m vs B-nocomp 39.6 m over t = 61-100; most "
-                                       "first detections pick 3-4-sample onset hypotheses whose level errors "
-                                       "(median 37 / 15 m/s^2) the closed loop then carries")
+@pytest.mark.xfail(strict=True, reason="measured at 100 runs: B 42.95 m vs B-nocomp 39.62 m over t = 61-100; even "
+                                       "compensating at the true onset gives 40.8 vs 38.9 m (500 runs): at this "
+                                       "geometry a compensated level's error costs more than the Singer filter's lag")
 def test_closed_loop_is_not_worse_than_no_compensation_after_the_maneuver(study):
     out, _ = study
     assert window(out, "b", "position_rmse", "after") <= window(out, "b_nocomp", "position_rmse", "after")
