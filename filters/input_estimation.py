@@ -327,8 +327,9 @@ class LOSMIE(_MIEBase):
             det_axes = ok & (stat_axes > self.threshold)
             stat = np.where(ok.any(axis=1), np.where(ok, stat_axes, -np.inf).max(axis=1), np.nan)
             quiet = ok & ~det_axes
-        onset = np.where(det_axes.any(axis=1), k - np.asarray(hyps)[best_axes[:, 0] if self.test == "pooled"
-                                                                    else best_axes.max(axis=1)], -1)
+        axis_onsets = k - np.asarray(hyps)[best_axes]                           # (R, 3) n_hat per axis
+        onset = np.where(det_axes, axis_onsets, np.iinfo(np.int64).max).min(axis=1)   # earliest detecting axis
+        onset = np.where(det_axes.any(axis=1), onset, -1)
         pick_h = lambda arr: np.take_along_axis(arr, best_axes[None], axis=0)[0]       # noqa: E731  (H,R,3)->(R,3)
         if self.compensate and self.level_uncertainty and self.level_correlation:
             # The test treats the old level's error eps as noise, so an error below ~4 sigma_old is never
