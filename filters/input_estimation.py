@@ -142,10 +142,15 @@ class LOSMIE(_MIEBase):
     def __init__(self, name: str = "B", tau: float = 10.0, sigma_m: float = 5.0, window: int = 5,
                  min_samples: int = 3, threshold: float = 16.27, test: Literal["pooled", "per_axis"] = "pooled",
                  rearm_after: int | None = None, level_uncertainty: bool = True, compensate: bool = True,
-                 level_correlation: bool = True) -> None:
+                 level_correlation: bool = True,
+                 pseudo_residual_covariance: Literal["diagonal", "full"] = "diagonal") -> None:
         super().__init__(name, tau, sigma_m, window, min_samples, threshold, rearm_after, level_uncertainty,
                          compensate)
         self.level_correlation = bool(level_correlation)
+        if pseudo_residual_covariance not in ("diagonal", "full"):
+            raise ValueError(f"pseudo_residual_covariance: {pseudo_residual_covariance!r} is not one of "
+                             f"['diagonal', 'full']")
+        self.pseudo_residual_covariance = pseudo_residual_covariance
         if test not in ("pooled", "per_axis"):
             raise ValueError(f"test: {test!r} is not one of ['pooled', 'per_axis']")
         self.test = test
@@ -278,17 +283,20 @@ class LOSMIE(_MIEBase):
         e = np.einsum("rhab,rdb->rhda", Tn, dz) - dt * v_n[:, :, None, :]      # (R, H, D, 3)
         S = tpvv[:, :, None, :] + r_hist[:, window][:, None] + r_hist[:, window - 1][:, None]
         N = np.where(pseudo, (window[None, :] - onsets[:, None] - 0.5) * dt * dt, 0.0)   # eq 25 (notes 2.4)
-        Wt = N[None, :, :, None] / S                                           # N_i / S_i, zero for i <= n
-        A = (N[None, :, :, None] * Wt).sum(axis=2)                             # (R, H, 3)
-        b = (Wt * e).sum(axis=2)
-        quad = (pseudo[None, :, :, None] * e * e / S).sum(axis=2)
-        u_hat = b / A                                                          # eq 28, per axis
+        if self.pseudo_residual_covariance == "diagonal":
+            Wt = N[None, :, :, None] / S                                       # N_i / S_i, zero for i <= n
+            A = (N[None, :, :, None] * Wt).sum(axis=2)                         # (R, H, 3)
+            b = (Wt * e).sum(axis=2)
+            quad = (pseudo[None, :, :, None] * e * e / S).sum(axis=2)
+            u_hat = b / A                                                      # eq 28, per axis
+            # eq 32 with eq 33: sum_{i<j} 2 W_i C_ij W_j, C_ij = T^2 P_vv(n) - R(i) [j = i + 1]
+            w_sum = Wt.sum(axis=2)
+            adjacent = (Wt[:, :, :-1] * Wt[:, :, 1:] * r_hist[:, window[:-1]][:, None]).sum(axis=2)
+            cross = tpvv * (w_sum * w_sum - (Wt * Wt).sum(axis=2)) - 2.0 * adjacent
+            sigma_u = 1.0 / A + cross / (A * A)
+        else:
+            A, u_hat, quad, w_sum, sigma_u = self._gls(e, N, pseudo, tpvv, window, onsets, r_hist, gain_hist)
         L = -0.5 * np.moveaxis(innov, 0, 1) - 0.5 * quad + 0.5 * u_hat * u_hat * A     # eqs 29-30
-        # eq 32 with eq 33: sum_{i<j} 2 W_i C_ij W_j, C_ij = T^2 P_vv(n) - R(i) [j = i + 1]
-        w_sum = Wt.sum(axis=2)
-        adjacent = (Wt[:, :, :-1] * Wt[:, :, 1:] * r_hist[:, window[:-1]][:, None]).sum(axis=2)
-        cross = tpvv * (w_sum * w_sum - (Wt * Wt).sum(axis=2)) - 2.0 * adjacent
-        sigma_u = 1.0 / A + cross / (A * A)
         # the old level and its covariance seen in frame n
         rot = Tn @ np.swapaxes(T, 1, 2)[:, None]                               # (R, H, 3, 3)
         u_old = np.einsum("rhab,rb->rha", rot, u)
@@ -406,6 +414,37 @@ class LOSMIE(_MIEBase):
         T = dTu @ T
         k_c = np.where(det_axes if self.test == "per_axis" else moved[:, None], k, k_c)
         return x, P, u, level_cov, T, k_c, sens, det_axes, stat, onset
+
+    def _gls(self, e, N, pseudo, tpvv, window, onsets, r_hist, gain_hist):
+        """Generalised least squares over each hypothesis' correlated pseudo-residuals (per axis, D x D).
+
+        Eqs 28-30 weight the pseudo-residuals by their variances alone, i.e. as if independent; they
+        are not (eq 33: adjacent ones share z(i), all share v_hat(n)), and z(n) also enters both
+        v_hat(n), through the velocity gain K_v(n), and e(n+1), which eq 33 drops:
+        C_ii = T^2 P_vv(n) + R(i) + R(i-1), C_i,i+1 = T^2 P_vv(n) - R(i), C_ij = T^2 P_vv(n), plus
+        T K_v(n) R(n) on row and column n+1. With C, u_hat = N'C^-1 e / N'C^-1 N has variance
+        exactly 1 / N'C^-1 N, and the score compares hypotheses without favouring short ones.
+        Costs batched D x D solves; off by default (the paper's reading)."""
+        dt = self.dt
+        D = window.size
+        first = (window[None, :] == onsets[:, None] + 1).astype(float)              # (H, D): i = n + 1
+        tkr = dt * gain_hist[:, onsets][:, :, :, 1] * r_hist[:, onsets]             # (R, H, 3)
+        r_i = np.moveaxis(r_hist[:, window], 2, 1)[:, None]                         # (R, 1, 3, D)
+        r_im1 = np.moveaxis(r_hist[:, window - 1], 2, 1)[:, None]
+        C = np.broadcast_to(tpvv[..., None, None], tpvv.shape + (D, D)).copy()    # (R, H, 3, D, D)
+        C += np.eye(D) * (r_i + r_im1)[..., None, :]
+        C -= np.eye(D, k=1) * r_i[..., :, None] + np.eye(D, k=-1) * r_i[..., None, :]
+        C += tkr[..., None, None] * (first[None, :, None, :, None] + first[None, :, None, None, :])
+        both = pseudo[:, :, None] & pseudo[:, None, :]
+        C = np.where(both[None, :, None], C, np.eye(D))                             # unit rows for i <= n
+        Nv = np.broadcast_to(N[None, :, None, :], C.shape[:-1])
+        ev = np.where(pseudo[None, :, None, :], np.moveaxis(e, 3, 2), 0.0)
+        sol = np.linalg.solve(C, np.stack([Nv, ev], axis=-1))
+        CiN, Cie = sol[..., 0], sol[..., 1]
+        A = np.einsum("rhad,rhad->rha", Nv, CiN)
+        u_hat = np.einsum("rhad,rhad->rha", CiN, ev) / A
+        quad = np.einsum("rhad,rhad->rha", ev, Cie)
+        return A, u_hat, quad, CiN.sum(axis=3), 1.0 / A
 
     def _gain_matrix(self, n: int, k: int, frames: np.ndarray, gain_hist: np.ndarray) -> np.ndarray:
         """M_n(k) (R, axis, kin, input) by the exact recursion of notes 2.4 H (eq 19 with the rotations):

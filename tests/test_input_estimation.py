@@ -77,7 +77,9 @@ def radar(x, runs=1, seed=None):
     return MeasurementSeries(np.arange(K, dtype=float), polar, R_P, np.ones((runs, K), bool), np.zeros(K, int))
 
 
-@pytest.mark.parametrize("make", [lambda: InertialMIE("A", test="full"), lambda: LOSMIE("B")], ids=["A-full", "B"])
+@pytest.mark.parametrize("make", [lambda: InertialMIE("A", test="full"), lambda: LOSMIE("B"),
+                                  lambda: LOSMIE("B", pseudo_residual_covariance="full")],
+                         ids=["A-full", "B", "B-gls"])
 def test_mie_recovers_a_constant_input_from_noise_free_data(make):
     """Noise-free radar, a (15, -10, -5) m/s^2 input from t = 40 s: the first detection finds the
     onset n = 40 and the level exactly, and the compensated state is the truth (eqs 28, 34, 38)."""
