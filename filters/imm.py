@@ -340,7 +340,7 @@ class _IMMBase:
         if K < 2:
             raise ValueError(f"{self.name}: needs at least 2 scans for two-point initialisation, got {K}")
         M = self.models.n_models
-        n = 4
+        n = self.bank.transition.shape[-1]
         state_out = np.full((R, K, n), np.nan)
         cov_out = np.full((R, K, n, n), np.nan)
         mode_prob = np.full((R, K, M), np.nan)
