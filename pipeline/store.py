@@ -20,6 +20,7 @@ import os
 import shutil
 import tempfile
 import time
+import uuid
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Mapping
@@ -144,7 +145,7 @@ class StageCache:
         return None
 
     def reject(self, path: Path, problem: str) -> None:
-        aside = path.with_name(f"{path.name}.{time.strftime('%Y%m%d-%H%M%S')}.rejected")
+        aside = path.with_name(f"{path.name}.{time.strftime('%Y%m%d-%H%M%S')}.{uuid.uuid4().hex[:6]}.rejected")
         os.replace(path, aside)
         log.warning("cache file %s was not used: %s. It was moved to %s and the stage is recomputed.",
                     path, problem, aside.name)
