@@ -5,7 +5,8 @@ fsync'ed, then renamed over the target: a reader sees the old file or the new on
 half-written one, and the temp name matches no ``*.parquet`` glob.
 
 The cache keeps one file per stage output under ``<artifacts>/cache/<stage>/<key>.parquet``.
-The key hashes the stage's resolved config, its inputs' keys and the package version. A cached
+The key hashes the stage's resolved config, its inputs' keys, the package version and a
+fingerprint of the code that produces stage outputs. A cached
 file is trusted only if its metadata names the same table and key; anything else (truncated,
 foreign, another key) is reported, moved aside as ``*.rejected`` (nothing is deleted) and
 recomputed.
@@ -13,6 +14,7 @@ recomputed.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import logging
@@ -55,9 +57,27 @@ def stable_hash(obj: Any, length: int = 16) -> str:
     return hashlib.sha256(text.encode()).hexdigest()[:length]
 
 
+@functools.cache
+def code_fingerprint() -> str:
+    """Hash of the source that produces stage outputs (filters/, scenarios, sensors, table schemas).
+
+    In the cache key so that editing a filter, a scenario or a sensor recomputes what it
+    produced, even without a version bump; a researcher changing the math must never be handed
+    estimates made by the old code.
+    """
+    root = Path(__file__).resolve().parents[1]
+    digest = hashlib.sha256()
+    files = [*sorted((root / "filters").rglob("*.py")), *sorted((root / "pipeline" / "scenarios").rglob("*.py")),
+             *sorted((root / "pipeline" / "sensors").rglob("*.py")), root / "pipeline" / "schemas.py"]
+    for f in files:
+        digest.update(f.relative_to(root).as_posix().encode())
+        digest.update(f.read_bytes())
+    return digest.hexdigest()[:16]
+
+
 def stage_key(stage: str, config: Any, inputs: tuple[str, ...] = ()) -> str:
     return stable_hash({"stage": stage, "config": config, "inputs": list(inputs),
-                        "version": package_version(), "schema": SCHEMA_VERSION})
+                        "version": package_version(), "schema": SCHEMA_VERSION, "code": code_fingerprint()})
 
 
 def _atomic_write(path: Path, write, binary: bool = True) -> None:

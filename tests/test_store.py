@@ -42,3 +42,11 @@ def test_a_table_with_missing_rows_is_refused():
     df, meta = schemas.truth_to_frame(truth)
     with pytest.raises(schemas.TableError, match="do not fill the run x step x target grid"):
         schemas.truth_from_frame(df.filter(~((pl.col("run") == 1) & (pl.col("step") == 3))), meta)
+
+
+def test_the_cache_key_changes_with_the_code_that_produces_the_output(monkeypatch):
+    from pipeline import store
+    key = store.stage_key("track", {"filter": {"name": "B"}}, ("abc",))
+    assert key == store.stage_key("track", {"filter": {"name": "B"}}, ("abc",))
+    monkeypatch.setattr(store, "code_fingerprint", lambda: "edited-filter")
+    assert store.stage_key("track", {"filter": {"name": "B"}}, ("abc",)) != key
