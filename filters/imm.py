@@ -58,11 +58,13 @@ class ModeSet:
         return w / w.sum(axis=1, keepdims=True)
 
 
+_FIELDS = ("model_index", "x", "P", "log_predicted", "log_likelihood", "log_weight")
+
+
 def _take_slots(s: ModeSet, order: np.ndarray) -> ModeSet:
     # index the two leading axes only, so each slot's (n,) / (n, n) block is copied whole
     rows = np.arange(order.shape[0])[:, None]
-    return ModeSet(*(getattr(s, f)[rows, order] for f in ("model_index", "x", "P", "log_predicted",
-                                                          "log_likelihood", "log_weight")))
+    return ModeSet(*(getattr(s, f)[rows, order] for f in _FIELDS))
 
 
 def compact(s: ModeSet) -> ModeSet:
@@ -88,8 +90,7 @@ def drop_slots(s: ModeSet, keep: np.ndarray) -> ModeSet:
 
 
 def concat(a: ModeSet, b: ModeSet) -> ModeSet:
-    return ModeSet(*(np.concatenate([getattr(a, f), getattr(b, f)], axis=1)
-                     for f in ("model_index", "x", "P", "log_predicted", "log_likelihood", "log_weight")))
+    return ModeSet(*(np.concatenate([getattr(a, f), getattr(b, f)], axis=1) for f in _FIELDS))
 
 
 def combine(s: ModeSet) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -136,13 +137,6 @@ class LinearModelBank:
     def n_models(self) -> int:
         return self.tpm.shape[0]
 
-    @property
-    def tpm_padded(self) -> np.ndarray:
-        M = self.n_models
-        padded = np.zeros((M + 1, M + 1))
-        padded[:M, :M] = self.tpm
-        return padded
-
     @classmethod
     def from_model_set(cls, models: AccelerationModelSet) -> "LinearModelBank":
         return cls(models.transition, models.process_noise, models.offsets, models.transition_matrix,
@@ -150,7 +144,7 @@ class LinearModelBank:
 
 
 def imm_cycle(prior: ModeSet, targets: np.ndarray, z: np.ndarray, noise_covariance: np.ndarray,
-              bank: LinearModelBank, tpm_padded: np.ndarray, detected: np.ndarray | None = None) -> ModeSet:
+              bank: LinearModelBank, detected: np.ndarray | None = None) -> ModeSet:
     """One IMM cycle VSIMM[M_k, M_{k-1}] (seed 001 eqs 1-6; literature notes 4.3).
 
     ``prior`` holds the k-1 posteriors of the models that ran at k-1; ``targets`` (R, B) names
@@ -160,69 +154,47 @@ def imm_cycle(prior: ModeSet, targets: np.ndarray, z: np.ndarray, noise_covarian
     buckets of equal (prior size, target size), so no run mixes or filters padding.
     """
     valid = targets >= 0
-    if valid.all() and prior.valid.all():                      # FSIMM, AO-VSIMM: nothing to bucket
-        return _dense_cycle(prior, targets, z, noise_covariance, bank, tpm_padded, detected)
+    if valid.all() and prior.valid.all():                      # FSIMM, AO-VSIMM: one dense bucket
+        return _dense_cycle(prior, targets, z, noise_covariance, bank, detected)
     counts = valid.sum(axis=1)
     prior_counts = prior.valid.sum(axis=1)
     width = targets.shape[1] + 1
     codes = np.unique(prior_counts * width + counts)          # (prior size, target size) pairs
-    pairs = np.stack([codes // width, codes % width], axis=1)
-    dense = (len(pairs) == 1 and valid[:, : counts[0]].all() and prior.valid[:, : prior_counts[0]].all())
-    if dense:
-        if counts[0] < targets.shape[1] or prior_counts[0] < prior.model_index.shape[1]:
-            return _pad(_dense_cycle(_take_slots(prior, np.broadcast_to(np.arange(prior_counts[0]), (len(counts), prior_counts[0]))),
-                                     targets[:, : counts[0]], z, noise_covariance, bank, tpm_padded, detected),
-                        targets.shape[1])
-        return _dense_cycle(prior, targets, z, noise_covariance, bank, tpm_padded, detected)
     R, B = targets.shape
     n = prior.x.shape[-1]
     out = ModeSet(np.full((R, B), -1), np.zeros((R, B, n)), np.zeros((R, B, n, n)), np.full((R, B), -np.inf),
                   np.full((R, B), -np.inf), np.full((R, B), -np.inf))
     prior_order = np.argsort(~prior.valid, axis=1, kind="stable")
     target_order = np.argsort(~valid, axis=1, kind="stable")
-    for prior_count, count in pairs:
+    for prior_count, count in zip(codes // width, codes % width):
         if count == 0:
             continue
         rows = np.flatnonzero((prior_counts == prior_count) & (counts == count))
         sub_prior = _take_slots(_take_runs(prior, rows), prior_order[rows, :prior_count])
         slots = target_order[rows, :count]
         sub = _dense_cycle(sub_prior, targets[rows[:, None], slots], z[rows], _runs_of(noise_covariance, rows),
-                           bank, tpm_padded, None if detected is None else detected[rows])
-        for field in ("model_index", "x", "P", "log_predicted", "log_likelihood", "log_weight"):
+                           bank, None if detected is None else detected[rows])
+        for field in _FIELDS:
             getattr(out, field)[rows[:, None], slots] = getattr(sub, field)
     return out
 
 
 def _take_runs(s: ModeSet, rows: np.ndarray) -> ModeSet:
-    return ModeSet(*(getattr(s, f)[rows] for f in ("model_index", "x", "P", "log_predicted", "log_likelihood",
-                                                     "log_weight")))
+    return ModeSet(*(getattr(s, f)[rows] for f in _FIELDS))
 
 
 def _runs_of(noise_covariance: np.ndarray, rows: np.ndarray) -> np.ndarray:
     return noise_covariance[rows] if noise_covariance.ndim == 3 else noise_covariance
 
 
-def _pad(s: ModeSet, width: int) -> ModeSet:
-    extra = width - s.model_index.shape[1]
-    if extra <= 0:
-        return s
-    R, _, n = s.x.shape
-    return concat(s, ModeSet(np.full((R, extra), -1), np.zeros((R, extra, n)), np.zeros((R, extra, n, n)),
-                             np.full((R, extra), -np.inf), np.full((R, extra), -np.inf), np.full((R, extra), -np.inf)))
-
-
 def _dense_cycle(prior: ModeSet, targets: np.ndarray, z: np.ndarray, noise_covariance: np.ndarray,
-                 bank: LinearModelBank, tpm_padded: np.ndarray, detected: np.ndarray | None) -> ModeSet:
-    """The IMM cycle where every run mixes the same number of prior slots into the same number of targets."""
+                 bank: LinearModelBank, detected: np.ndarray | None) -> ModeSet:
+    """The IMM cycle where every prior slot and every target is a running model (no padding)."""
     R, A = prior.model_index.shape
-    M = bank.n_models
     n = prior.x.shape[-1]
-    valid = targets >= 0
     B = targets.shape[1]
     mu = prior.probabilities()
-    src = np.where(prior.valid, prior.model_index, M)
-    dst = np.where(valid, targets, M)
-    joint = tpm_padded[src[:, :, None], dst[:, None, :]] * mu[:, :, None]           # pi_ij mu^i, (R, A, B)
+    joint = bank.tpm[prior.model_index[:, :, None], targets[:, None, :]] * mu[:, :, None]   # pi_ij mu^i, (R, A, B)
     predicted = joint.sum(axis=1)                                                     # eqs 1, 3
     reachable = predicted > 0
     # eq 5; a model no running model can switch to keeps mu = 0 and mixes with the posteriors
@@ -236,16 +208,11 @@ def _dense_cycle(prior: ModeSet, targets: np.ndarray, z: np.ndarray, noise_covar
     P_mix = (wT @ second).reshape(R, B, n, n) - x_mix[..., :, None] * x_mix[..., None, :]   # eq 6
     x_mix = x_mix + reference
 
-    all_valid = bool(valid.all())
-    if all_valid:
-        xs, Ps, model = x_mix.reshape(R * B, n), P_mix.reshape(R * B, n, n), targets.reshape(-1)
-        run_of = np.repeat(np.arange(R), B)
-    else:
-        run_of, slot_of = np.nonzero(valid)
-        xs, Ps, model = x_mix[run_of, slot_of], P_mix[run_of, slot_of], targets[run_of, slot_of]
+    model = targets.reshape(-1)
+    run_of = np.repeat(np.arange(R), B)
     F = bank.transition[model] if bank.transition.ndim == 3 else bank.transition
     Q = bank.process_noise[model] if bank.process_noise.ndim == 3 else bank.process_noise
-    x_pred, P_pred = predict(xs, Ps, F, Q, bank.offsets[model])
+    x_pred, P_pred = predict(x_mix.reshape(R * B, n), P_mix.reshape(R * B, n, n), F, Q, bank.offsets[model])
     Rm = noise_covariance[run_of] if noise_covariance.ndim == 3 else noise_covariance
     x_post, P_post, loglik = update(x_pred, P_pred, z[run_of], bank.measurement_matrix, Rm)
     if detected is not None and not detected.all():
@@ -253,19 +220,10 @@ def _dense_cycle(prior: ModeSet, targets: np.ndarray, z: np.ndarray, noise_covar
         x_post = np.where(seen[:, None], x_post, x_pred)
         P_post = np.where(seen[:, None, None], P_post, P_pred)
         loglik = np.where(seen, loglik, 0.0)
-
     with np.errstate(divide="ignore"):
-        log_pred = np.where(valid, np.log(predicted), -np.inf)
-    if all_valid:
-        x_out, P_out, ll_out = x_post.reshape(R, B, n), P_post.reshape(R, B, n, n), loglik.reshape(R, B)
-    else:
-        x_out = np.zeros((R, B, n))
-        P_out = np.zeros((R, B, n, n))
-        ll_out = np.full((R, B), -np.inf)
-        x_out[run_of, slot_of] = x_post
-        P_out[run_of, slot_of] = P_post
-        ll_out[run_of, slot_of] = loglik
-    return ModeSet(targets, x_out, P_out, log_pred, ll_out, log_pred + ll_out)
+        log_pred = np.log(predicted)
+    loglik = loglik.reshape(R, B)
+    return ModeSet(targets, x_post.reshape(R, B, n), P_post.reshape(R, B, n, n), log_pred, loglik, log_pred + loglik)
 
 
 def _logsumexp(a: np.ndarray, axis: int) -> np.ndarray:
@@ -284,7 +242,6 @@ class _IMMBase:
         self.models = models
         self.name = name
         self.bank = LinearModelBank.from_model_set(models)
-        self._tpm_padded = self.bank.tpm_padded
         self.initial_model = models.model_index(initial_model)
         M = models.n_models
         G = len(models.group_names)
@@ -393,7 +350,7 @@ class _IMMBase:
         members = self.models.groups[np.where(fire, target, 0)]                       # (R, S)
         already = (members[:, :, None] == result.model_index[:, None, :]).any(-1)
         new_targets = np.where(fire[:, None] & ~already & (members >= 0), members, -1)
-        new = imm_cycle(prior, new_targets, z, noise, self.bank, self._tpm_padded, detected)
+        new = imm_cycle(prior, new_targets, z, noise, self.bank, detected)
         return compact(concat(result, new)), (new_targets >= 0).sum(axis=1)
 
     def _in_group(self, s: ModeSet, group: np.ndarray) -> np.ndarray:
@@ -428,7 +385,7 @@ class FSIMM(_IMMBase):
         return replace(s, log_predicted=log_mu, log_weight=log_mu)
 
     def _step(self, prior, groups, z, noise, detected):
-        s = imm_cycle(prior, prior.model_index, z, noise, self.bank, self._tpm_padded, detected)
+        s = imm_cycle(prior, prior.model_index, z, noise, self.bank, detected)
         return s, groups, s.valid.sum(axis=1)
 
 
@@ -456,7 +413,7 @@ class AOVSIMM(_IMMBase):
         return self.initial_group
 
     def _step(self, prior, groups, z, noise, detected):
-        result = imm_cycle(prior, prior.model_index, z, noise, self.bank, self._tpm_padded, detected)
+        result = imm_cycle(prior, prior.model_index, z, noise, self.bank, detected)
         evaluated = result.valid.sum(axis=1)
         target = self._activation(result, groups.old, np.ones(len(groups.old), dtype=bool))
         if (target < 0).all():
@@ -516,7 +473,7 @@ class VSIMM(_IMMBase):
         return self.initial_group
 
     def _step(self, prior, groups, z, noise, detected):
-        result = imm_cycle(prior, prior.model_index, z, noise, self.bank, self._tpm_padded, detected)
+        result = imm_cycle(prior, prior.model_index, z, noise, self.bank, detected)
         evaluated = result.valid.sum(axis=1)
         in_union = groups.new >= 0
         target = self._activation(result, groups.old, ~in_union)
