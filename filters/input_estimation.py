@@ -61,9 +61,13 @@ _KIN_MAJOR = [a * 3 + kin for kin in range(3) for a in range(3)]
 
 class _MIEBase:
     name: str
+    TESTS: tuple[str, ...] = ()
 
     def __init__(self, name: str, tau: float, sigma_m: float, window: int, min_samples: int, threshold: float,
-                 rearm_after: int | None, level_uncertainty: bool, compensate: bool) -> None:
+                 test: str, rearm_after: int | None, level_uncertainty: bool, compensate: bool,
+                 level_correlation: bool) -> None:
+        if test not in self.TESTS:
+            raise ValueError(f"test: {test!r} is not one of {list(self.TESTS)}")
         if not tau > 0:
             raise ValueError(f"tau: {tau} must be > 0 s")
         if not sigma_m > 0:
@@ -83,6 +87,8 @@ class _MIEBase:
         self.rearm_after = rearm
         self.level_uncertainty = bool(level_uncertainty)
         self.compensate = bool(compensate)
+        self.level_correlation = bool(level_correlation)
+        self.test = test
 
     def _model(self, dt: float) -> None:
         self.F = singer_transition(dt, self.tau)
@@ -139,21 +145,19 @@ class LOSMIE(_MIEBase):
     its own against chi2(1), with a per-axis k_c.
     """
 
+    TESTS = ("pooled", "per_axis")
+
     def __init__(self, name: str = "B", tau: float = 10.0, sigma_m: float = 5.0, window: int = 5,
                  min_samples: int = 3, threshold: float = 16.27, test: Literal["pooled", "per_axis"] = "pooled",
                  rearm_after: int | None = None, level_uncertainty: bool = True, compensate: bool = True,
                  level_correlation: bool = True,
                  pseudo_residual_covariance: Literal["diagonal", "full"] = "diagonal") -> None:
-        super().__init__(name, tau, sigma_m, window, min_samples, threshold, rearm_after, level_uncertainty,
-                         compensate)
-        self.level_correlation = bool(level_correlation)
+        super().__init__(name, tau, sigma_m, window, min_samples, threshold, test, rearm_after, level_uncertainty,
+                         compensate, level_correlation)
         if pseudo_residual_covariance not in ("diagonal", "full"):
             raise ValueError(f"pseudo_residual_covariance: {pseudo_residual_covariance!r} is not one of "
                              f"['diagonal', 'full']")
         self.pseudo_residual_covariance = pseudo_residual_covariance
-        if test not in ("pooled", "per_axis"):
-            raise ValueError(f"test: {test!r} is not one of ['pooled', 'per_axis']")
-        self.test = test
 
     def run(self, measurements: MeasurementSeries) -> TrackEstimate:
         started = time.perf_counter()
@@ -328,17 +332,15 @@ class LOSMIE(_MIEBase):
         else:
             masked = np.where(valid, scores, -np.inf)
             best_axes = np.argmax(masked, axis=0)                                              # (R, 3)
-            pick = lambda arr: np.take_along_axis(arr, best_axes[None], axis=0)[0]            # noqa: E731
-            ok = np.isfinite(pick(masked))
-            delta = pick(inputs) - pick(olds)
-            stat_axes = delta * delta / pick(test_var)
+            ok = np.isfinite(self._pick(masked, best_axes))
+            delta = self._pick(inputs, best_axes) - self._pick(olds, best_axes)
+            stat_axes = delta * delta / self._pick(test_var, best_axes)
             det_axes = ok & (stat_axes > self.threshold)
             stat = np.where(ok.any(axis=1), np.where(ok, stat_axes, -np.inf).max(axis=1), np.nan)
             quiet = ok & ~det_axes
         axis_onsets = k - np.asarray(hyps)[best_axes]                           # (R, 3) n_hat per axis
         onset = np.where(det_axes, axis_onsets, np.iinfo(np.int64).max).min(axis=1)   # earliest detecting axis
         onset = np.where(det_axes.any(axis=1), onset, -1)
-        pick_h = lambda arr: np.take_along_axis(arr, best_axes[None], axis=0)[0]       # noqa: E731  (H,R,3)->(R,3)
         if self.compensate and self.level_uncertainty and self.level_correlation:
             # The test treats the old level's error eps as noise, so an error below ~4 sigma_old is never
             # corrected by a detection. Delta = xi - G eps carries information on eps: when the test does
@@ -346,9 +348,9 @@ class LOSMIE(_MIEBase):
             # and, through the tracked sensitivity J, from the state, and shrink the level's covariance.
             soft = quiet & ((k - k_c) % self.rearm_after == 0)
             if soft.any():
-                g = pick_h(np.moveaxis(np.diagonal(gain_eps, axis1=2, axis2=3), 1, 0))
-                s_old = pick_h(np.moveaxis(np.diagonal(cov_n, axis1=2, axis2=3), 1, 0))
-                s_new = pick_h(variances)
+                g = self._pick(np.moveaxis(np.diagonal(gain_eps, axis1=2, axis2=3), 1, 0), best_axes)
+                s_old = self._pick(np.moveaxis(np.diagonal(cov_n, axis1=2, axis2=3), 1, 0), best_axes)
+                s_new = self._pick(variances, best_axes)
                 denom = g * g * s_old + s_new
                 eps_n = np.where(soft, -g * s_old * delta / np.where(denom > 0, denom, 1.0), 0.0)
                 post = s_old - (g * s_old) ** 2 / np.where(denom > 0, denom, 1.0)
@@ -371,12 +373,12 @@ class LOSMIE(_MIEBase):
 
         # ---- compensation (eqs 34-44) for the detected (run, axis) pairs --------------------------
         delta = np.where(det_axes, delta, 0.0)
-        sigma = np.where(det_axes, np.take_along_axis(variances, best_axes[None], axis=0)[0], 0.0)
+        sigma = np.where(det_axes, self._pick(variances, best_axes), 0.0)
         if self.level_uncertainty and self.level_correlation:
             # the new level's error is xi - (G - I) eps: keep (G - I) Sigma_old (G - I)' in its covariance
             Kc = gain_eps - np.eye(3)
-            sigma_level = sigma + np.where(det_axes, pick_h(np.moveaxis(
-                np.einsum("rhab,rhbc,rhac->rha", Kc, cov_n, Kc), 1, 0)), 0.0)
+            sigma_level = sigma + np.where(det_axes, self._pick(np.moveaxis(
+                np.einsum("rhab,rhbc,rhac->rha", Kc, cov_n, Kc), 1, 0), best_axes), 0.0)
         else:
             sigma_level = sigma
         dx = np.zeros_like(x)
@@ -414,6 +416,11 @@ class LOSMIE(_MIEBase):
         T = dTu @ T
         k_c = np.where(det_axes if self.test == "per_axis" else moved[:, None], k, k_c)
         return x, P, u, level_cov, T, k_c, sens, det_axes, stat, onset
+
+    @staticmethod
+    def _pick(per_hypothesis: np.ndarray, best_axes: np.ndarray) -> np.ndarray:
+        """(H, R, 3) -> (R, 3): each (run, axis) at its chosen onset hypothesis."""
+        return np.take_along_axis(per_hypothesis, best_axes[None], axis=0)[0]
 
     def _gls(self, e, N, pseudo, tpvv, window, onsets, r_hist, gain_hist):
         """Generalised least squares over each hypothesis' correlated pseudo-residuals (per axis, D x D).
@@ -470,16 +477,14 @@ class InertialMIE(_MIEBase):
     Delta' Cov^-1 Delta.
     """
 
+    TESTS = ("per_axis_sum", "full")
+
     def __init__(self, name: str = "A", tau: float = 10.0, sigma_m: float = 5.0, window: int = 5,
                  min_samples: int = 3, threshold: float = 16.27,
                  test: Literal["per_axis_sum", "full"] = "per_axis_sum", rearm_after: int | None = None,
                  level_uncertainty: bool = True, compensate: bool = True, level_correlation: bool = True) -> None:
-        super().__init__(name, tau, sigma_m, window, min_samples, threshold, rearm_after, level_uncertainty,
-                         compensate)
-        self.level_correlation = bool(level_correlation)
-        if test not in ("per_axis_sum", "full"):
-            raise ValueError(f"test: {test!r} is not one of ['per_axis_sum', 'full']")
-        self.test = test
+        super().__init__(name, tau, sigma_m, window, min_samples, threshold, test, rearm_after, level_uncertainty,
+                         compensate, level_correlation)
 
     def run(self, measurements: MeasurementSeries) -> TrackEstimate:
         started = time.perf_counter()
@@ -563,7 +568,7 @@ class InertialMIE(_MIEBase):
         rows = np.arange(R)
         first = k - self._span + 1
         vel = [1, 4, 7]
-        scores, inputs, covs, valid, old_covs, gains = [], [], [], [], [], []
+        scores, inputs, covs, old_covs, gains = [], [], [], [], []
         for d in hyps:
             n = k - d
             innov = np.zeros(R)
@@ -605,7 +610,6 @@ class InertialMIE(_MIEBase):
             scores.append(np.where(armed & (n >= k_c), L, -np.inf))
             inputs.append(u_hat)
             covs.append(A_inv + A_inv @ cross @ A_inv)
-            valid.append(armed & (n >= k_c))
         scores, inputs, covs = np.stack(scores), np.stack(inputs), np.stack(covs)
         best = np.argmax(scores, axis=0)
         ok = np.isfinite(scores[best, rows])
@@ -651,7 +655,8 @@ class InertialMIE(_MIEBase):
         P = P + M @ np.where(det[:, None, None], sigma_u, 0.0) @ np.swapaxes(M, 1, 2)   # eq 37
         u = u + delta                                                            # eq 38
         Kc = G - np.eye(3)                               # the new level's error is xi - (G - I) eps
-        new_level_cov = sigma_u + (Kc @ level_cov @ np.swapaxes(Kc, 1, 2) if self.level_correlation else 0.0)
+        carried = self.level_uncertainty and self.level_correlation
+        new_level_cov = sigma_u + (Kc @ level_cov @ np.swapaxes(Kc, 1, 2) if carried else 0.0)
         level_cov = np.where(det[:, None, None], new_level_cov, level_cov)
         sens = np.where(det[:, None, None], M, sens)
         k_c = np.where(det, k, k_c)
