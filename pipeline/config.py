@@ -67,16 +67,34 @@ def validate(cfg: DictConfig) -> None:
     if bad:
         raise ConfigError(f"record.runs: {list(record_runs)} holds run index(es) {bad} outside the {runs} Monte Carlo "
                           f"runs; allowed indices are 0..{runs - 1} (mc.runs={runs}).")
-    windows = cfg.metrics.get("windows") or {}
-    for name, bounds in windows.items():
-        if (not isinstance(bounds, (list, ListConfig)) or len(bounds) != 2 or not all(_is_int(b) for b in bounds)
-                or bounds[0] > bounds[1] or bounds[0] < 0):
-            raise ConfigError(f"metrics.windows.{name}: {bounds!r} must be [first_step, last_step] with "
-                              f"0 <= first_step <= last_step.")
+    windows = _check_windows(cfg, "windows")
+    for name in _check_windows(cfg, "count_windows"):
+        if name in windows:
+            raise ConfigError(f"metrics.count_windows.{name}: the name is also a key of metrics.windows; give the "
+                              f"count window another name (summary rows are keyed by window name).")
+    reached = cfg.metrics.get("group_reached")
+    if reached:
+        groups = list(cfg.models.groups.keys()) if cfg.get("models") and "groups" in cfg.models else []
+        if reached.get("group") not in groups:
+            raise ConfigError(f"metrics.group_reached.group: {reached.get('group')!r} is not a model group of "
+                              f"this experiment; groups are {groups} (or set metrics.group_reached=null).")
+        if not _is_int(reached.get("by_step")) or reached.by_step < 0:
+            raise ConfigError(f"metrics.group_reached.by_step: {reached.get('by_step')!r} must be a step index >= 0.")
     ref = cfg.metrics.get("reference_variant")
     if ref is not None and ref not in cfg.filters:
         raise ConfigError(f"metrics.reference_variant: {ref!r} is not a variant of this experiment; "
                           f"choose one of {list(cfg.filters.keys())} or null.")
+
+
+def _check_windows(cfg: DictConfig, key: str) -> dict:
+    """metrics.<key>: name -> [first_step, last_step] with 0 <= first_step <= last_step."""
+    windows = cfg.metrics.get(key) or {}
+    for name, bounds in windows.items():
+        if (not isinstance(bounds, (list, ListConfig)) or len(bounds) != 2 or not all(_is_int(b) for b in bounds)
+                or bounds[0] > bounds[1] or bounds[0] < 0):
+            raise ConfigError(f"metrics.{key}.{name}: {bounds!r} must be [first_step, last_step] with "
+                              f"0 <= first_step <= last_step.")
+    return windows
 
 
 def build(node: DictConfig, key: str) -> Any:

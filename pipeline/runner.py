@@ -18,7 +18,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 import polars as pl
-from omegaconf import DictConfig, ListConfig, OmegaConf
+from omegaconf import DictConfig, OmegaConf
 
 from filters.base import TrackEstimate
 from pipeline import schemas
@@ -91,23 +91,6 @@ def _config_columns(resolved: dict) -> dict[str, Any]:
     # filters.<v>.models repeats the top-level models node (interpolated): keep it once; the report
     # node holds reference tables (a paper's numbers), not parameters of the experiment
     return {f"{k}": v for k, v in flatten(resolved, skip=("filters.*.models", "description", "report")).items()}
-
-
-def _check_count_windows(cfg: DictConfig) -> None:
-    """metrics.count_windows: like metrics.windows (config.validate), named apart from them."""
-    windows = cfg.metrics.get("count_windows") or {}
-    for name, bounds in windows.items():
-        if (not isinstance(bounds, (list, ListConfig)) or len(bounds) != 2 or not all(_is_int(b) for b in bounds)
-                or bounds[0] > bounds[1] or bounds[0] < 0):
-            raise ConfigError(f"metrics.count_windows.{name}: {bounds!r} must be [first_step, last_step] with "
-                              f"0 <= first_step <= last_step.")
-        if name in (cfg.metrics.get("windows") or {}):
-            raise ConfigError(f"metrics.count_windows.{name}: the name is also a key of metrics.windows; give the "
-                              f"count window another name (summary rows are keyed by window name).")
-
-
-def _is_int(value: Any) -> bool:
-    return isinstance(value, int) and not isinstance(value, bool)
 
 
 def _windows(cfg: DictConfig, key: str, K: int) -> list[Window]:
@@ -194,7 +177,6 @@ def run_experiment(cfg: DictConfig, ctx: RunContext) -> RunOutcome:
     total_started = time.perf_counter()
     experiment = str(cfg.get("experiment_name"))
     validate(cfg)
-    _check_count_windows(cfg)
     report_tables = build_report_tables(cfg)
     resolved = OmegaConf.to_container(cfg, resolve=True)
     config_hash = stable_hash(resolved)
@@ -244,12 +226,9 @@ def run_experiment(cfg: DictConfig, ctx: RunContext) -> RunOutcome:
     windows = _windows(cfg, "windows", K)
     count_windows = _windows(cfg, "count_windows", K)
     reached = None
-    gr = cfg.metrics.get("group_reached")
-    if gr and cfg.get("models") and "groups" in cfg.models:
-        group_names = list(cfg.models.groups.keys())
-        if gr.group not in group_names:
-            raise ConfigError(f"metrics.group_reached.group: {gr.group!r} is not a model group; groups are {group_names}.")
-        reached = (str(gr.group), group_names.index(gr.group), int(gr.by_step))
+    gr = cfg.metrics.get("group_reached")            # checked by validate()
+    if gr:
+        reached = (str(gr.group), list(cfg.models.groups.keys()).index(gr.group), int(gr.by_step))
     ref = cfg.metrics.get("reference_variant")
     summary = summary_rows(per_variant, estimates, windows, ref if ref in variants else None, runs, reached,
                            count_windows)
@@ -258,10 +237,10 @@ def run_experiment(cfg: DictConfig, ctx: RunContext) -> RunOutcome:
     metrics = _provenance(metrics_frame(truth.time, per_variant, runs), ctx, experiment, config_hash)
     summary = _provenance(summary, ctx, experiment, config_hash)
     summary = summary.with_columns(*[pl.lit(v).alias(k) for k, v in _config_columns(resolved).items()])
-    meta = {**provenance}
     atomic_write_parquet(metrics, ctx.run_dir / "metrics.parquet",
-                         {**schemas.table_metadata("metrics", {}, {"value": "see summary units"}), **meta})
-    atomic_write_parquet(summary, ctx.run_dir / "summary.parquet", {**schemas.table_metadata("summary", {}, {}), **meta})
+                         {**schemas.table_metadata("metrics", {}, {"value": "see summary units"}), **provenance})
+    atomic_write_parquet(summary, ctx.run_dir / "summary.parquet",
+                         {**schemas.table_metadata("summary", {}, {}), **provenance})
     log.info("[evaluate] metrics for %d variants x %d steps, %.2f s", len(variants), K, time.perf_counter() - started)
 
     if cfg.record.enabled:

@@ -122,6 +122,8 @@ def test_truncated_or_foreign_cache_file_is_rejected_and_recomputed(tmp_path, ca
     (["models.transition_matrix.1.1=0.5"], "row 1 (m2) sums to 0.55; every row must sum to 1"),
     (["models.transition_matrix=[[1,0],[0,1]]"], "transition_matrix: shape 2x2 does not match the 13 models"),
     (["filters.vsimm.ratio=sideways"], "filters.vsimm: ratio: 'sideways' is not one of ['printed', 'new_old', 'old_new']"),
+    (["experiment=ao_vsimm_s2", "metrics.group_reached.group=M9"],
+     "metrics.group_reached.group: 'M9' is not a model group of this experiment; groups are ['M1', 'M2', 'M3', 'M4', 'M5']"),
 ])
 def test_bad_input_is_rejected_with_the_key_the_value_and_what_is_allowed(tmp_path, overrides, message):
     with pytest.raises(ConfigError) as info:

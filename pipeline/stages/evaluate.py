@@ -5,6 +5,7 @@ Pure functions of arrays; the runner adds provenance columns and writes the tabl
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 from typing import Mapping, Sequence
 
@@ -102,17 +103,9 @@ def _count(flags: np.ndarray) -> np.ndarray:
     return np.sum((values != 0) & np.isfinite(values), axis=0).astype(float)
 
 
-class _quiet_nanmean:
+def _quiet_nanmean() -> warnings.catch_warnings:
     """All-NaN columns (steps before the first estimate) are expected: silence their warnings."""
-
-    def __enter__(self):
-        import warnings
-        self._ctx = warnings.catch_warnings()
-        self._ctx.__enter__()
-        warnings.simplefilter("ignore", category=RuntimeWarning)
-
-    def __exit__(self, *exc):
-        self._ctx.__exit__(*exc)
+    return warnings.catch_warnings(action="ignore", category=RuntimeWarning)
 
 
 def metrics_frame(time: np.ndarray, variants: Mapping[str, tuple[str, dict[str, np.ndarray]]], runs: int
@@ -182,21 +175,19 @@ def summary_rows(variants: Mapping[str, tuple[str, dict[str, np.ndarray]]], esti
                 add(key, display, "group_reached_fraction", f"{name} by step {by_step}", fraction)
     if reference_key is not None and reference_key in variants:
         ref_time = estimates[reference_key].compute_seconds
-        ref_models = {w.name: _window_mean(variants[reference_key][1].get("models_evaluated"), w) for w in windows}
+        ref_models = {w.name: _models_per_step(variants[reference_key][1], w) for w in windows}
         for key, (display, metrics) in variants.items():
             add(key, display, "compute_pct_of_reference", None, 100.0 * estimates[key].compute_seconds / ref_time)
             for w in windows:
-                mine = _window_mean(metrics.get("models_evaluated"), w)
-                if mine is not None and ref_models[w.name]:
-                    add(key, display, "models_pct_of_reference", w.name, 100.0 * mine / ref_models[w.name])
+                mine = _models_per_step(metrics, w)
+                ref = ref_models[w.name]
+                if mine is not None and ref is not None and np.isfinite(mine) and np.isfinite(ref) and ref:
+                    add(key, display, "models_pct_of_reference", w.name, 100.0 * mine / ref)
     return pl.DataFrame(rows, schema={"variant": pl.String, "variant_key": pl.String, "metric": pl.String,
                                       "window": pl.String, "value": pl.Float64, "unit": pl.String,
                                       "n_runs": pl.Int32})
 
 
-def _window_mean(values: np.ndarray | None, w: Window) -> float | None:
-    if values is None:
-        return None
-    segment = values[w.first_step: w.last_step + 1]
-    with _quiet_nanmean():
-        return float(np.nanmean(segment)) if segment.size else None
+def _models_per_step(metrics: Mapping[str, np.ndarray], w: Window) -> float | None:
+    values = metrics.get("models_evaluated")
+    return None if values is None else window_value("models_evaluated", values, w)
