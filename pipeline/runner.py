@@ -187,6 +187,7 @@ def run_experiment(cfg: DictConfig, ctx: RunContext) -> RunOutcome:
     variants = selected_variants(cfg)
     log.info("experiment %s: %d Monte Carlo runs, seed %d, variants %s -> %s", experiment, runs, seed, variants, ctx.run_dir)
 
+    study = build(cfg.study, "study") if cfg.get("study") is not None else None
     scenario = build(cfg.scenario, "scenario")
     sensor = build(cfg.sensors, "sensors")
     estimators = {v: build(cfg.filters[v], f"filters.{v}") for v in variants}
@@ -201,20 +202,26 @@ def run_experiment(cfg: DictConfig, ctx: RunContext) -> RunOutcome:
     measure_key = stage_key("measure", {"sensors": resolved["sensors"], "seed": seed}, (scenario_key,))
     detections, _ = stages.run("measure", measure_key, "detections", lambda: sensor.measure(truth, seed),
                                schemas.detections_to_frame, Path("detections.parquet"), f"{runs} runs x {K} scans")
-    series = measurement_series(detections, sensor_position=getattr(sensor, "position", None))
+    if study is None:
+        track_input = measurement_series(detections, sensor_position=getattr(sensor, "position", None))
+        table, to_frame = "estimates", (lambda e: schemas.estimate_to_frame(e, truth.state_names))
+        study_node = {}
+    else:                                  # a study with its own filter input and estimate table
+        track_input = study.track_input(truth, detections, sensor, seed)
+        table, to_frame = study.estimate_table, study.estimate_to_frame
+        study_node = {"study": resolved["study"]}
 
-    estimates: dict[str, TrackEstimate] = {}
+    estimates: dict[str, Any] = {}
     display: dict[str, str] = {}
     cached: dict[str, bool] = {}
     for v in variants:
-        est_key = stage_key("track", {"filter": resolved["filters"][v]}, (measure_key,))
+        est_key = stage_key("track", {"filter": resolved["filters"][v], **study_node}, (measure_key,))
         estimator = estimators[v]
         estimate, hit = stages.run(
-            "track", est_key, "estimates", lambda e=estimator: e.run(series),
-            lambda e: schemas.estimate_to_frame(e, truth.state_names), Path("estimates") / f"{v}.parquet",
-            f"{getattr(estimator, 'name', v)}: {runs} runs x {K} scans")
+            "track", est_key, table, lambda e=estimator: e.run(track_input), to_frame,
+            Path("estimates") / f"{v}.parquet", f"{getattr(estimator, 'name', v)}: {runs} runs x {K} scans")
         if not hit:
-            per_step = estimate.extras.get("models_evaluated")
+            per_step = getattr(estimate, "extras", {}).get("models_evaluated")
             models = f", {per_step[:, 2:].mean():.2f} models/step" if per_step is not None and K > 2 else ""
             log.info("[track] %s filtered in %.3f s%s", getattr(estimator, "name", v), estimate.compute_seconds, models)
         estimates[v] = estimate
@@ -222,7 +229,12 @@ def run_experiment(cfg: DictConfig, ctx: RunContext) -> RunOutcome:
         cached[v] = hit
 
     started = time.perf_counter()
-    per_variant = {v: (display[v], per_step_metrics(truth, estimates[v])) for v in variants}
+    if study is None:
+        per_variant = {v: (display[v], per_step_metrics(truth, estimates[v])) for v in variants}
+        units = None
+    else:
+        per_variant = {v: (display[v], study.per_step_metrics(truth, estimates[v], sensor)) for v in variants}
+        units = study.metric_units({m for _, metrics in per_variant.values() for m in metrics})
     windows = _windows(cfg, "windows", K)
     count_windows = _windows(cfg, "count_windows", K)
     reached = None
@@ -231,7 +243,7 @@ def run_experiment(cfg: DictConfig, ctx: RunContext) -> RunOutcome:
         reached = (str(gr.group), list(cfg.models.groups.keys()).index(gr.group), int(gr.by_step))
     ref = cfg.metrics.get("reference_variant")
     summary = summary_rows(per_variant, estimates, windows, ref if ref in variants else None, runs, reached,
-                           count_windows)
+                           count_windows, units)
     summary = summary.with_columns(pl.col("variant_key").replace_strict(
         {v: cached[v] for v in variants}, return_dtype=pl.Boolean).alias("estimates_from_cache"))
     metrics = _provenance(metrics_frame(truth.time, per_variant, runs), ctx, experiment, config_hash)
@@ -245,19 +257,15 @@ def run_experiment(cfg: DictConfig, ctx: RunContext) -> RunOutcome:
 
     if cfg.record.enabled:
         started = time.perf_counter()
-        from pipeline.recording import write_recording
         record_runs = list(cfg.record.runs) if not isinstance(cfg.record.runs, int) else [cfg.record.runs]
-        models_node = cfg.get("models")
-        # a sensor with a position (e.g. the 3-D radar: polar detections relative to it) tells the
-        # recording where it sits
-        where = getattr(sensor, "position", None)
-        located = {} if where is None else {"sensor_position": [float(v) for v in where]}
-        write_recording(
-            ctx.run_dir / "recording.rrd", experiment=experiment, truth=truth, detections=detections,
-            estimates=estimates, display_names=display, metrics=metrics, record_runs=record_runs,
-            model_names=list(models_node.accelerations.keys()) if models_node and "accelerations" in models_node else None,
-            group_names=list(models_node.groups.keys()) if models_node and "groups" in models_node else None,
-            config_text=OmegaConf.to_yaml(cfg, resolve=True), description=str(cfg.get("description", "")), **located)
+        if study is not None:
+            study.record(ctx.run_dir / "recording.rrd", experiment=experiment, truth=truth, detections=detections,
+                         estimates=estimates, display_names=display, metrics=metrics, record_runs=record_runs,
+                         sensor=sensor, config_text=OmegaConf.to_yaml(cfg, resolve=True),
+                         description=str(cfg.get("description", "")))
+        else:
+            _record_single_target(cfg, ctx, experiment, truth, detections, estimates, display, metrics, record_runs,
+                                  sensor)
         log.info("[record] recording.rrd (runs %s), %.2f s", record_runs, time.perf_counter() - started)
 
     text = format_summary(summary, experiment, runs)
@@ -268,6 +276,22 @@ def run_experiment(cfg: DictConfig, ctx: RunContext) -> RunOutcome:
     write_status(ctx, experiment, "ok", config_hash=config_hash, runs=runs)
     log.info("done in %.2f s", time.perf_counter() - total_started)
     return RunOutcome(summary, metrics, text)
+
+
+def _record_single_target(cfg: DictConfig, ctx: RunContext, experiment: str, truth, detections, estimates,
+                          display, metrics, record_runs, sensor) -> None:
+    from pipeline.recording import write_recording
+    models_node = cfg.get("models")
+    # a sensor with a position (e.g. the 3-D radar: polar detections relative to it) tells the
+    # recording where it sits
+    where = getattr(sensor, "position", None)
+    located = {} if where is None else {"sensor_position": [float(v) for v in where]}
+    write_recording(
+        ctx.run_dir / "recording.rrd", experiment=experiment, truth=truth, detections=detections,
+        estimates=estimates, display_names=display, metrics=metrics, record_runs=record_runs,
+        model_names=list(models_node.accelerations.keys()) if models_node and "accelerations" in models_node else None,
+        group_names=list(models_node.groups.keys()) if models_node and "groups" in models_node else None,
+        config_text=OmegaConf.to_yaml(cfg, resolve=True), description=str(cfg.get("description", "")), **located)
 
 
 def describe_exception(exc: BaseException) -> tuple[str, str]:

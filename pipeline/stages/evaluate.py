@@ -148,15 +148,18 @@ def window_value(metric: str, values: np.ndarray, w: Window) -> float:
 
 def summary_rows(variants: Mapping[str, tuple[str, dict[str, np.ndarray]]], estimates: Mapping[str, TrackEstimate],
                  windows: Sequence[Window], reference_key: str | None, runs: int,
-                 reached: tuple[str, int, int] | None = None, count_windows: Sequence[Window] = ()) -> pl.DataFrame:
+                 reached: tuple[str, int, int] | None = None, count_windows: Sequence[Window] = (),
+                 units: Mapping[str, str] | None = None) -> pl.DataFrame:
     """Per variant: each per-step metric over each window (averaged; counts summed, see COUNT_METRICS),
     the count metrics also over each of ``count_windows``, compute time, models per step (and both as %
-    of the reference variant), and optionally the fraction of runs reaching a group."""
+    of the reference variant), and optionally the fraction of runs reaching a group. ``units`` adds
+    units for metric names a study defines beyond ``UNITS``."""
     rows: list[dict] = []
+    unit_of = {**UNITS, **(units or {})}
 
     def add(key, display, metric, window, value):
         rows.append({"variant": display, "variant_key": key, "metric": metric, "window": window,
-                     "value": None if value is None else float(value), "unit": UNITS.get(metric, ""),
+                     "value": None if value is None else float(value), "unit": unit_of.get(metric, ""),
                      "n_runs": runs})
 
     for key, (display, metrics) in variants.items():

@@ -31,7 +31,8 @@ _COUNTS = {"detections", "detections_axis_x", "detections_axis_y", "detections_a
 
 def format_summary(summary: pl.DataFrame, experiment: str, runs: int) -> str:
     """Variant x metric table, one block per window (window-free metrics shown in every block)."""
-    windows = [w for w in summary["window"].unique(maintain_order=True).to_list()
+    shown = {m for m, _ in SHOWN}
+    windows = [w for w in summary.filter(pl.col("metric").is_in(shown))["window"].unique(maintain_order=True).to_list()
                if w is not None and " by step " not in w]
     variants = summary["variant"].unique(maintain_order=True).to_list()
     lines = [f"{experiment}: {runs} Monte Carlo runs"]
@@ -277,3 +278,108 @@ def _number(value: float) -> str:
     if math.isnan(value):
         return "-"
     return f"{value:.0f}" if float(value).is_integer() else f"{value:.2f}"
+
+
+@dataclass(frozen=True)
+class _SummaryRow:
+    label: str
+    metric: str
+    window: str
+    scale: float
+    reference: str
+
+
+class SummaryTable:
+    """Chosen summary values (metric over a window) of some variants side by side, with an optional
+    ratio of two variants and a reference column (free text: a paper's or a spec's value).
+
+    Parameters
+    ----------
+    title : first line printed
+    variants : variant keys, one column each
+    rows : list of {label, metric, window[, scale][, reference]}: ``metric`` and ``window`` pick a
+        summary row (see metrics.windows); ``scale`` multiplies the value for display (e.g. 1000
+        to print rad as mrad; say so in the label); ``reference`` is printed as given
+    ratio : optional [numerator, denominator] variant keys: adds a column numerator / denominator
+    reference_label : the reference column's header
+    note : a line printed under the title
+    """
+
+    def __init__(self, title: str, variants: Sequence[str], rows: Sequence[Mapping[str, Any]],
+                 ratio: Sequence[str] | None = None, reference_label: str = "reference", note: str = "") -> None:
+        if not variants:
+            raise ValueError("variants: name at least one variant key")
+        if ratio is not None and (len(ratio) != 2 or any(r not in variants for r in ratio)):
+            raise ValueError(f"ratio: {ratio!r} must be [numerator, denominator], two of the table's variants "
+                             f"{list(variants)}")
+        parsed = []
+        for i, r in enumerate(rows):
+            r = dict(r)
+            unknown = set(r) - {"label", "metric", "window", "scale", "reference"}
+            if unknown or "metric" not in r or "window" not in r:
+                raise ValueError(f"rows[{i}]: {r} must be {{label, metric, window[, scale][, reference]}}"
+                                 + (f"; unknown key(s) {sorted(unknown)}" if unknown else ""))
+            scale = float(r.get("scale", 1.0))
+            if not math.isfinite(scale) or scale == 0:
+                raise ValueError(f"rows[{i}].scale: {r.get('scale')!r} must be a finite non-zero factor")
+            parsed.append(_SummaryRow(str(r.get("label", r["metric"])), str(r["metric"]), str(r["window"]), scale,
+                                      "" if r.get("reference") is None else str(r["reference"])))
+        self.title = str(title)
+        self.variants = [str(v) for v in variants]
+        self.rows = parsed
+        self.ratio = None if ratio is None else (str(ratio[0]), str(ratio[1]))
+        self.reference_label = str(reference_label)
+        self.note = str(note)
+
+    @property
+    def variant_keys(self) -> tuple[str, ...]:
+        return tuple(self.variants)
+
+    def value(self, ctx: ReportContext, variant: str, row: _SummaryRow) -> float | None:
+        hit = ctx.summary.filter((pl.col("variant_key") == variant) & (pl.col("metric") == row.metric)
+                                 & (pl.col("window") == row.window))["value"]
+        if hit.len() == 0 or hit[0] is None or math.isnan(hit[0]):
+            return None
+        return float(hit[0])
+
+    def render(self, ctx: ReportContext) -> str:
+        shown = [v for v in self.variants]
+        header = ["", *[ctx.variants.get(v, v) for v in shown]]
+        if self.ratio:
+            header.append(f"{ctx.variants.get(self.ratio[0], self.ratio[0])} / "
+                          f"{ctx.variants.get(self.ratio[1], self.ratio[1])}")
+        if any(r.reference for r in self.rows):
+            header.append(self.reference_label)
+        table = [header]
+        for row in self.rows:
+            values = {v: self.value(ctx, v, row) for v in shown}
+            line = [row.label] + ["-" if values[v] is None else _significant(values[v] * row.scale) for v in shown]
+            if self.ratio:
+                a, b = values[self.ratio[0]], values[self.ratio[1]]
+                line.append("-" if a is None or b is None or b == 0 else f"{a / b:.2f}")
+            if len(header) > len(line):
+                line.append(row.reference)
+            table.append(line)
+        widths = [max(len(r[i]) for r in table) for i in range(len(header))]
+        lines = [self.title, f"ours: {ctx.runs} Monte Carlo runs"]
+        if self.note:
+            lines.append(self.note)
+        lines.append("")
+        text_columns = {0} | ({len(header) - 1} if header[-1] == self.reference_label else set())
+        for n, r in enumerate(table):
+            lines.append("  ".join(cell.ljust(widths[j]) if j in text_columns else cell.rjust(widths[j])
+                                   for j, cell in enumerate(r)).rstrip())
+            if n == 0:
+                lines.append("  ".join("-" * w for w in widths))
+        return "\n".join(lines)
+
+
+def _significant(value: float) -> str:
+    """Three significant digits, plain notation where that reads well."""
+    if value == 0 or not math.isfinite(value):
+        return f"{value:g}"
+    magnitude = abs(value)
+    if 1e-3 <= magnitude < 1e5:
+        digits = max(0, 2 - int(math.floor(math.log10(magnitude))))
+        return f"{value:.{digits}f}"
+    return f"{value:.2e}"

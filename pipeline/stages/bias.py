@@ -1,0 +1,175 @@
+"""Track and evaluate stages of the bias-registration study (spec 002, seed 002).
+
+The study differs from the single-target ones in what the filters consume (asynchronous reports
+of several radars on many targets, plus the bias-free track start of the seed's set-up) and in
+what they return (a stacked bias estimate, biased and compensated local tracks), so an
+experiment selects this adapter with a ``study`` node; the runner then asks it for the filters'
+input, the estimate table and the per-step metrics.
+
+Metrics live on the truth's time grid (step k is truth.time[k]); a report at time t fills the
+step at t. Names: ``bias_rmse_<component>_s<n>`` (radar n, 1-based), ``bias_nees`` (all 4S
+components), ``bias_nees_s<n>``; for every kept target m and radar n, at that radar's reports:
+``position_rmse_s<n>_t<m>`` / ``velocity_rmse_...`` of the biased local track, the same with
+``_compensated``, and ``track_nees_s<n>_t<m>_compensated`` (4 dof).
+"""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+import numpy as np
+
+from filters.bias import BIAS_NAMES, BIAS_UNITS, BiasRegistrationResult, RadarReports, TrackStart
+from pipeline import schemas
+from pipeline.data import Detections, Truth
+from pipeline.seeding import run_generators
+from pipeline.stages.evaluate import _quiet_nanmean
+
+
+class BiasRegistrationStudy:
+    """Adapter of study 002.
+
+    Parameters
+    ----------
+    start_time : when the local tracks start [s] (a truth time before the first report)
+    start_std : standard deviations of the start error (x, y, vx, vy) [m, m/s]: every radar's
+        track of every target starts at truth + N(0, P0), P0 = diag(start_std^2), G = 0 (the
+        seed's bias-free start; each radar draws its own error). P0 is also the filters' initial
+        covariance.
+    """
+
+    estimate_table = "bias_estimates"
+
+    def __init__(self, start_time: float = 0.0, start_std: Sequence[float] = (10.0, 10.0, 5.0, 5.0)) -> None:
+        std = np.asarray(start_std, dtype=float)
+        if std.shape != (4,) or not np.all(np.isfinite(std) & (std >= 0)):
+            raise ValueError(f"start_std: {list(start_std)} must be 4 standard deviations >= 0 (x, y m; vx, vy m/s)")
+        if not np.isfinite(start_time):
+            raise ValueError(f"start_time: {start_time} must be a finite time in s")
+        self.start_time = float(start_time)
+        self.start_std = std
+
+    # ---- track input -----------------------------------------------------------------------
+    def track_input(self, truth: Truth, detections: Detections, sensor, seed: int) -> RadarReports:
+        """The filters' view: each radar's polar reports, its stated noise, its position, and the
+        bias-free track start drawn here (stage "track_start": same per run whatever R)."""
+        positions = np.asarray(getattr(sensor, "positions", None), dtype=float)
+        S = positions.shape[0]
+        if positions.ndim != 2 or positions.shape[1] != 2:
+            raise ValueError(f"study: the bias-registration study needs a radar network with 2-D positions "
+                             f"(sensors.radars); {type(sensor).__name__} has none")
+        noise_std = np.full((S, 2), np.nan)
+        for s in range(S):
+            scans = np.nonzero(detections.sensor == s)[0]
+            if scans.size:
+                cov = detections.noise_covariance[0, scans[0], 0]
+                noise_std[s] = np.sqrt(np.diag(cov))
+        hit = np.nonzero(np.isclose(truth.time, self.start_time, atol=1e-9))[0]
+        if not hit.size:
+            raise ValueError(f"study.start_time: {self.start_time} s is not a time of the truth (it runs "
+                             f"{truth.time[0]}..{truth.time[-1]} s in steps of {truth.time[1] - truth.time[0]} s)")
+        R, _, T, _ = truth.state.shape
+        noise = np.stack([g.standard_normal((S, T, 4)) for g in run_generators(seed, "track_start", R)])
+        start_state = truth.state[:, hit[0]][:, None] + noise * self.start_std
+        start = TrackStart(self.start_time, start_state, np.diag(self.start_std**2))
+        return RadarReports(detections.time, detections.sensor.astype(int), detections.z, positions, noise_std, start)
+
+    @staticmethod
+    def estimate_to_frame(result: BiasRegistrationResult):
+        return schemas.bias_estimates_to_frame(result)
+
+    # ---- evaluate --------------------------------------------------------------------------
+    @staticmethod
+    def per_step_metrics(truth: Truth, result: BiasRegistrationResult, sensor) -> dict[str, np.ndarray]:
+        """The metrics against the radars' true biases (``sensor.true_bias_vector()``)."""
+        return bias_study_metrics(truth, result, np.asarray(sensor.true_bias_vector(), dtype=float))
+
+    @staticmethod
+    def metric_units(names) -> dict[str, str]:
+        return bias_metric_units(sorted(names))
+
+    # ---- record ----------------------------------------------------------------------------
+    @staticmethod
+    def record(path, **kwargs) -> None:
+        from pipeline.recording_bias import write_bias_recording
+        write_bias_recording(path, **kwargs)
+
+
+def _steps(truth_time: np.ndarray, times: np.ndarray) -> np.ndarray:
+    index = np.searchsorted(truth_time, times - 1e-9)
+    index = np.clip(index, 0, truth_time.size - 1)
+    if not np.allclose(truth_time[index], times, atol=1e-9):
+        raise ValueError("estimate times are not on the truth's time grid")
+    return index
+
+
+def bias_study_metrics(truth: Truth, result: BiasRegistrationResult, true_bias: np.ndarray) -> dict[str, np.ndarray]:
+    """Per-step metrics (K_truth,) of one variant; see the module docstring for the names."""
+    Kt = truth.time.size
+    steps = _steps(truth.time, result.time)
+    S = true_bias.size // 4
+    out: dict[str, np.ndarray] = {}
+
+    def on_grid(values: np.ndarray, at: np.ndarray | None = None, prior: float | None = None) -> np.ndarray:
+        grid = np.full(Kt, np.nan)
+        grid[steps if at is None else steps[at]] = values
+        if prior is not None and steps.size and steps[0] > 0:
+            grid[: steps[0]] = prior
+        return grid
+
+    with np.errstate(invalid="ignore"), _quiet_nanmean():
+        if np.isfinite(result.bias).any():
+            err = result.bias - true_bias                                   # (R, K, 4S)
+            rmse = np.sqrt(np.mean(err**2, axis=0))
+            for s in range(S):
+                for c, name in enumerate(BIAS_NAMES):
+                    j = 4 * s + c
+                    # before the first report the estimate is the prior mean 0
+                    out[f"bias_rmse_{name}_s{s + 1}"] = on_grid(rmse[:, j], prior=abs(true_bias[j]))
+            out["bias_nees"] = on_grid(np.mean(_nees(err, result.bias_covariance), axis=0))
+            for s in range(S):
+                block = slice(4 * s, 4 * s + 4)
+                out[f"bias_nees_s{s + 1}"] = on_grid(
+                    np.mean(_nees(err[..., block], result.bias_covariance[..., block, block]), axis=0))
+        truth_at = truth.state[:, steps][:, :, result.targets]              # (R, K, Tsel, 4)
+        for s in range(S):
+            mine = np.nonzero(result.sensor == s)[0]
+            if not mine.size:
+                continue
+            for col, target in enumerate(result.targets):
+                label = f"s{s + 1}_t{target + 1}"
+                true_state = truth_at[:, mine, col]
+                for kind, state in (("", result.track_state), ("_compensated", result.compensated_state)):
+                    e = state[:, mine, col] - true_state
+                    out[f"position_rmse_{label}{kind}"] = on_grid(np.sqrt(np.nanmean(np.sum(e[..., :2]**2, -1), 0)), mine)
+                    out[f"velocity_rmse_{label}{kind}"] = on_grid(np.sqrt(np.nanmean(np.sum(e[..., 2:]**2, -1), 0)), mine)
+                e = result.compensated_state[:, mine, col] - true_state
+                out[f"track_nees_{label}_compensated"] = on_grid(
+                    np.nanmean(_nees(e, result.compensated_covariance[:, mine, col]), axis=0), mine)
+    return out
+
+
+def _nees(err: np.ndarray, covariance: np.ndarray) -> np.ndarray:
+    ok = np.isfinite(err).all(-1) & np.isfinite(covariance).all((-1, -2))
+    P = np.where(ok[..., None, None], covariance, np.eye(err.shape[-1]))
+    e = np.where(ok[..., None], err, 0.0)
+    value = np.einsum("...i,...i->...", e, np.linalg.solve(P, e[..., None])[..., 0])
+    return np.where(ok, value, np.nan)
+
+
+def bias_metric_units(names: Sequence[str]) -> dict[str, str]:
+    """Units of the study's metric names, for the summary table."""
+    units = {}
+    for name in names:
+        if name.startswith("bias_rmse_"):
+            component = name[len("bias_rmse_"):].rsplit("_s", 1)[0]
+            units[name] = BIAS_UNITS[BIAS_NAMES.index(component)]
+        elif name.startswith("bias_nees"):
+            units[name] = "1 (chi2 dof = 4 per radar)"
+        elif name.startswith("track_nees"):
+            units[name] = "1 (chi2 dof = 4)"
+        elif name.startswith("position_rmse"):
+            units[name] = "m"
+        elif name.startswith("velocity_rmse"):
+            units[name] = "m/s"
+    return units
