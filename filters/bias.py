@@ -44,6 +44,8 @@ from typing import Sequence
 
 import numpy as np
 
+from filters.kalman import shared_times, times_shared
+
 STATE_NAMES = ("x", "y", "vx", "vy")
 BIAS_NAMES = ("range_offset", "azimuth_offset", "range_scale", "azimuth_scale")
 BIAS_UNITS = ("m", "rad", "1", "1")
@@ -101,7 +103,7 @@ def converted_measurement(z_polar: np.ndarray, sensor_position: np.ndarray) -> n
 def converted_covariance(B: np.ndarray, noise_std: np.ndarray) -> np.ndarray:
     """R^m = B diag(sigma_r^2, sigma_theta^2) B' (eq 6)."""
     scaled = B * np.asarray(noise_std, dtype=float)
-    return scaled @ np.swapaxes(scaled, -1, -2)
+    return _times_2(scaled, np.swapaxes(scaled, -1, -2))
 
 
 # --------------------------------------------------------------------------------------------
@@ -208,31 +210,56 @@ class LocalTracks:
     bias_matrix: np.ndarray
 
 
+def _cv_move(state: np.ndarray, covariance: np.ndarray, bias_matrix: np.ndarray | None, dt: float,
+             density: float) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """Phi X, Phi P Phi' + Q, Phi G with the one shared Phi: each product is a single BLAS call
+    over the whole (runs x targets) stack (kalman.times_shared) instead of one per track."""
+    F = cv_transition(dt)
+    moved = state @ F.T
+    P = shared_times(F, times_shared(covariance, F.T)) + dcwna_process_noise(dt, density)
+    G = None if bias_matrix is None else shared_times(F, bias_matrix)
+    return moved, P, G
+
+
 def predict_local(tracks: LocalTracks, dt: float, density: float) -> LocalTracks:
     """Eqs 13-14: X^b and G move with Phi; P gains Q and does not depend on the bias."""
-    F = cv_transition(dt)
-    return LocalTracks(tracks.state @ F.T, F @ tracks.covariance @ F.T + dcwna_process_noise(dt, density),
-                       F @ tracks.bias_matrix)
+    return LocalTracks(*_cv_move(tracks.state, tracks.covariance, tracks.bias_matrix, dt, density))
+
+
+def _inverse_2x2(S: np.ndarray) -> np.ndarray:
+    a, b, c, d = S[..., 0, 0], S[..., 0, 1], S[..., 1, 0], S[..., 1, 1]
+    det = a * d - b * c
+    inv = np.empty_like(S)
+    inv[..., 0, 0] = d / det
+    inv[..., 0, 1] = -b / det
+    inv[..., 1, 0] = -c / det
+    inv[..., 1, 1] = a / det
+    return inv
+
+
+def _times_2(A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """A @ B for stacks A (..., p, 2) and B (..., 2, q) as two broadcast products: for these tiny
+    matrices that beats numpy's one-product-per-matrix stacked matmul several-fold."""
+    return A[..., :, 0:1] * B[..., 0:1, :] + A[..., :, 1:2] * B[..., 1:2, :]
 
 
 def update_local(predicted: LocalTracks, z_converted: np.ndarray, noise: np.ndarray, bias_columns: np.ndarray
                  ) -> LocalTracks:
     """Eqs 16-21 with the converted measurement z^m, its covariance R^m and B C.
 
-    G' = (I - K H) Phi G + K B C (eq 20 corrected), P' = (I - K H) P (eq 21, Joseph form).
+    G' = (I - K H) Phi G + K B C (eq 20 corrected), P' = (I - K H) P (eq 21, as P - K S K').
     """
     P = predicted.covariance
-    S = P[..., :2, :2] + noise                                       # eq 19
     PHt = P[..., :, :2]
-    gain = np.linalg.solve(S, np.swapaxes(PHt, -1, -2))              # K' = S^-1 H P (S symmetric)
-    gain = np.swapaxes(gain, -1, -2)                                 # eq 18: K = P H' S^-1
+    S = P[..., :2, :2] + noise                                       # eq 19
+    gain = _times_2(PHt, _inverse_2x2(S))                            # eq 18
     innovation = z_converted - predicted.state[..., :2]
-    state = predicted.state + np.einsum("...ij,...j->...i", gain, innovation)
-    I_KH = np.broadcast_to(np.eye(4), P.shape).copy()
-    I_KH[..., :, :2] -= gain
-    covariance = I_KH @ P @ np.swapaxes(I_KH, -1, -2) + gain @ noise @ np.swapaxes(gain, -1, -2)
-    bias_matrix = I_KH @ predicted.bias_matrix + gain @ bias_columns    # eq 20, (I - K H) Phi G + K B C
-    return LocalTracks(state, 0.5 * (covariance + np.swapaxes(covariance, -1, -2)), bias_matrix)
+    state = predicted.state + gain[..., 0] * innovation[..., 0:1] + gain[..., 1] * innovation[..., 1:2]
+    covariance = P - _times_2(gain, np.swapaxes(PHt, -1, -2))
+    covariance = 0.5 * (covariance + np.swapaxes(covariance, -1, -2))
+    G = predicted.bias_matrix
+    bias_matrix = G + _times_2(gain, bias_columns - G[..., :2, :])   # eq 20: (I - K H) Phi G + K B C
+    return LocalTracks(state, covariance, bias_matrix)
 
 
 def two_point_start(z0: np.ndarray, z1: np.ndarray, noise0: np.ndarray, noise1: np.ndarray,
@@ -292,11 +319,17 @@ def add_pseudo_measurements(info: BiasInformation, z: np.ndarray, H: np.ndarray,
     batched sum over targets equals the target-by-target recursion of eqs 33-35.
     """
     H_scaled = H * info.prior_std
-    weighted = np.linalg.solve(noise, H_scaled)                       # R_b^-1 H (per target)
+    if noise.shape[-1] == 2:
+        weighted = _times_2(_inverse_2x2(noise), H_scaled)            # R_b^-1 H (per target)
+    else:
+        weighted = np.linalg.solve(noise, H_scaled)
     if valid is not None:
         weighted = np.where(valid[..., None, None], weighted, 0.0)
-    information = info.information + np.einsum("rtmi,rtmj->rij", H_scaled, weighted)
-    vector = info.information_vector + np.einsum("rtmi,rtm->ri", weighted, np.nan_to_num(z))
+    R, n = H.shape[0], H.shape[-1]
+    stacked_H = H_scaled.reshape(R, -1, n)                            # all targets' rows of a run
+    stacked_W = weighted.reshape(R, -1, n)
+    information = info.information + np.swapaxes(stacked_H, -1, -2) @ stacked_W
+    vector = info.information_vector + (np.swapaxes(stacked_W, -1, -2) @ np.nan_to_num(z).reshape(R, -1, 1))[..., 0]
     return BiasInformation(information, vector, info.prior_std)
 
 
@@ -488,12 +521,11 @@ def pseudo_bias_measurements(i: int, z_converted: np.ndarray, noise: np.ndarray,
     Rb = np.zeros((R, T, 2 * J, 2 * J))
     for row, (j, track, dt) in enumerate(zip(others, other_tracks, elapsed)):
         rows = slice(2 * row, 2 * row + 2)
-        F = cv_transition(dt)
-        predicted_state = track.state @ F.T
-        predicted_cov = F @ track.covariance @ F.T + dcwna_process_noise(dt, density)
+        predicted_state, predicted_cov, predicted_G = _cv_move(track.state, track.covariance, track.bias_matrix,
+                                                                float(dt), density)
         z[..., rows] = z_converted - predicted_state[..., :2]                    # eq 22
         H[..., rows, 4 * i:4 * i + 4] = bias_columns                             # eq 25, block i
-        H[..., rows, 4 * j:4 * j + 4] = -(F @ track.bias_matrix)[..., :2, :]     # eq 25, block j
+        H[..., rows, 4 * j:4 * j + 4] = -predicted_G[..., :2, :]                 # eq 25, block j: -H Phi G_j
         Rb[..., rows, rows] = predicted_cov[..., :2, :2] + noise                 # eq 27
         if correlated:
             for col in range(J):

@@ -9,7 +9,7 @@ from typing import Sequence
 
 import numpy as np
 
-from filters.bias import cv_transition, dcwna_process_noise  # seed 002 eqs 42-43, shared with the filters
+from filters.bias import dcwna_process_noise  # seed 002 eq 43, shared with the filters
 from pipeline.data import Truth
 from pipeline.seeding import run_generators
 
@@ -88,14 +88,12 @@ class ConstantVelocityGrid:
         x = np.empty((runs, K, T, 4))
         x[:, 0] = self.initial_states                                      # k = 0: exact, no noise
         if self.process_noise_density > 0:
-            # exact factor of Q (eq 43): Q = q kron(M, I2), so L = sqrt(q) kron(chol(M), I2)
-            L = np.sqrt(self.process_noise_density) * np.kron(
-                np.linalg.cholesky(np.array([[dt**3 / 3.0, dt**2 / 2.0], [dt**2 / 2.0, dt]])), np.eye(2))
+            L = np.linalg.cholesky(dcwna_process_noise(dt, self.process_noise_density))   # exact, eq 43
             n = np.stack([g.standard_normal((K - 1, T, 4)) for g in run_generators(seed, "scenario", runs)])
             w = n @ L.T                                                    # (R, K-1, T, 4)
         else:
             w = np.zeros((runs, K - 1, T, 4))
-        # x_k = Phi x_{k-1} + w_k (eq 42) as running sums over k (each sum adds the same terms in the
+        # x_k = Phi x_{k-1} + w_k (eq 42, Phi = cv_transition(dt)) as running sums over k (each sum adds the same terms in the
         # same order as the recursion): v_k = v_{k-1} + w^v_k, p_k = p_{k-1} + (dt v_{k-1} + w^p_k)
         x[:, 1:, :, 2:] = w[..., 2:]
         np.cumsum(x[..., 2:], axis=1, out=x[..., 2:])
