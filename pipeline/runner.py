@@ -191,6 +191,8 @@ def run_experiment(cfg: DictConfig, ctx: RunContext) -> RunOutcome:
     scenario = build(cfg.scenario, "scenario")
     sensor = build(cfg.sensors, "sensors")
     estimators = {v: build(cfg.filters[v], f"filters.{v}") for v in variants}
+    if study is not None:
+        study.check(scenario, sensor, estimators)
     cache = StageCache(ctx.artifacts / "cache", enabled=bool(cfg.cache.enabled))
     provenance = {"mtt.experiment": experiment, "mtt.config_hash": config_hash, "mtt.package_version": package_version()}
     stages = _Stages(cache, ctx, provenance)

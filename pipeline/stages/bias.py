@@ -22,6 +22,7 @@ import numpy as np
 from filters.bias import BIAS_NAMES, BIAS_UNITS, BiasRegistrationResult, RadarReports, TrackStart
 from pipeline import schemas
 from pipeline.data import Detections, Truth
+from pipeline.errors import ConfigError
 from pipeline.seeding import run_generators
 from pipeline.stages.evaluate import _quiet_nanmean
 
@@ -48,6 +49,38 @@ class BiasRegistrationStudy:
             raise ValueError(f"start_time: {start_time} must be a finite time in s")
         self.start_time = float(start_time)
         self.start_std = std
+
+    # ---- checks before any stage runs -------------------------------------------------------
+    def check(self, scenario, sensor, estimators: dict) -> None:
+        """Cross-node consistency the nodes cannot check alone; raises ConfigError naming the key."""
+        positions = getattr(sensor, "positions", None)
+        if positions is None or np.ndim(positions) != 2 or np.shape(positions)[1] != 2:
+            raise ConfigError(f"sensors: {type(sensor).__name__} is not a network of 2-D radars; the "
+                              f"bias-registration study needs one (e.g. sensors=biased_radars).")
+        dt, duration = getattr(scenario, "dt", None), getattr(scenario, "duration", None)
+        targets = getattr(scenario, "targets", None)
+        if dt is not None and duration is not None:
+            grid = np.arange(int(round(duration / dt)) + 1) * dt
+            if not np.isclose(grid, self.start_time, atol=1e-9).any():
+                raise ConfigError(f"study.start_time: {self.start_time} s is not a time of the scenario's grid "
+                                  f"(0..{duration:g} s in steps of scenario.dt = {dt:g} s).")
+            times, radar = sensor.report_times(duration)
+            off = np.abs(np.round(times / dt) * dt - times) > 1e-9
+            if off.any():
+                first = int(np.argmax(off))
+                raise ConfigError(
+                    f"sensors.radars[{int(radar[first])}]: reports at {times[first]:g} s, which is not on the "
+                    f"scenario's time grid (scenario.dt = {dt:g} s); make every first_report and period a "
+                    f"multiple of scenario.dt.")
+            if times.size and times[0] < self.start_time:
+                raise ConfigError(f"study.start_time: {self.start_time} s is after the first report at "
+                                  f"{times[0]:g} s; the tracks must start before it.")
+        for key, estimator in estimators.items():
+            wanted = getattr(estimator, "output_targets", None)
+            if targets is not None and wanted is not None and max(wanted) > targets:
+                raise ConfigError(f"filters.{key}.output_targets: {wanted} names target(s) "
+                                  f"{[t for t in wanted if t > targets]} but the scenario has {targets} targets "
+                                  f"(numbered 1..{targets}, 1 = nearest radar 1); choose numbers in that range.")
 
     # ---- track input -----------------------------------------------------------------------
     def track_input(self, truth: Truth, detections: Detections, sensor, seed: int) -> RadarReports:

@@ -37,8 +37,8 @@ def format_summary(summary: pl.DataFrame, experiment: str, runs: int) -> str:
     variants = summary["variant"].unique(maintain_order=True).to_list()
     lines = [f"{experiment}: {runs} Monte Carlo runs"]
     for window in windows or [None]:
-        rows = summary.filter(pl.col("window").is_null() | (pl.col("window") == window)
-                              | pl.col("window").str.contains(" by step "))
+        in_window = pl.lit(False) if window is None else pl.col("window") == window
+        rows = summary.filter(pl.col("window").is_null() | in_window | pl.col("window").str.contains(" by step "))
         cols = [(m, label) for m, label in SHOWN if m in rows["metric"].to_list()]
         header = ["variant"] + [label for _, label in cols]
         table = [header]
