@@ -37,11 +37,13 @@ def test_experiments_compose_with_their_variants_and_tables():
     with initialize_config_dir(version_base="1.3", config_dir=str(CONF)):
         cfg = compose("config", overrides=["experiment=async_bias"])
         ablation = compose("config", overrides=["experiment=async_bias_two_point"])
+        measured = compose("config", overrides=["experiment=async_bias_measured_jacobians"])
     assert list(cfg.filters) == ["local", "proposed", "exx"]
     assert cfg.filters.proposed._target_ == "filters.bias.PseudoBiasRegistration"
     assert cfg.filters.exx._target_ == "filters.bias.EXXRegistration"
     assert {cfg.filters[v].start for v in cfg.filters} == {"truth"}
     assert {ablation.filters[v].start for v in ablation.filters} == {"two_point"}
+    assert {measured.filters[v].jacobian_at for v in measured.filters} == {"measurement"}
     assert cfg.study._target_ == "pipeline.stages.bias.BiasRegistrationStudy"
     for name in ("bias_rmse", "compensation", "consistency"):
         table = instantiate(cfg.report.tables[name], _convert_="all")
