@@ -246,6 +246,11 @@ def run_experiment(cfg: DictConfig, ctx: RunContext) -> RunOutcome:
     ref = cfg.metrics.get("reference_variant")
     summary = summary_rows(per_variant, estimates, windows, ref if ref in variants else None, runs, reached,
                            count_windows, units)
+    extra = getattr(study, "extra_summary", None)
+    if extra is not None:
+        rows = extra(truth, estimates, display, runs, ref if ref in variants else None, sensor, per_variant)
+        if rows:
+            summary = pl.concat([summary, pl.DataFrame(rows, schema=summary.schema)])
     summary = summary.with_columns(pl.col("variant_key").replace_strict(
         {v: cached[v] for v in variants}, return_dtype=pl.Boolean).alias("estimates_from_cache"))
     metrics = _provenance(metrics_frame(truth.time, per_variant, runs), ctx, experiment, config_hash)

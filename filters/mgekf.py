@@ -1,0 +1,385 @@
+"""Active/passive sonar tracking with the modified gain EKF (seed 003; Song & Speyer 1985).
+
+The seed lost almost all of its equations; they are restated here from Song & Speyer's MGEKF
+(IEEE TAC 30(10), 1985), Song & Um's relative-motion model (IEEE T-AES 32(1), 1996) and the
+seed's words, following the literature notes, section 3. Equation numbers in brackets are the
+seed's, where its text says which equation a piece is.
+
+Model (seed eqs 1-3, 6-7). Relative state x = (rx, ry, vx, vy, ax, ay): target minus own-ship
+position and velocity, and the target's acceleration, a first-order Markov process with time
+constant tau (lambda = 1/tau "assumed constant"). Own-ship acceleration u is a known input::
+
+    x(k+1) = Phi x(k) + Gamma_u u(k) + w(k),  Phi = kron(F_Singer(dt, tau), I2),
+    Gamma_u = -[dt^2/2 I2; dt I2; 0],  Q = kron(Q_Singer(dt, tau, sigma_m), I2)
+
+(per-axis Singer blocks in the order position, velocity, acceleration; ``relative_motion_model``).
+
+Measurements (seed eqs 4-5, 15), bearing from north clockwise, x east, y north::
+
+    beta = atan2(rx, ry) + v_beta          (passive and active)
+    r    = hypot(rx, ry) + v_r             (active only)
+
+MGEKF (seed eqs 18-22 for the active case; Song & Speyer for bearings). The function h is
+*modifiable* (seed eq 13, theorem 1): h(x) - h(x_hat) = g(z, x_hat) (x - x_hat), with g depending
+on the true state only through the measurement. The gain is the EKF's; only the covariance update
+uses g evaluated with the measured bearing::
+
+    K = P H' (H P H' + R)^-1,  H = dh/dx at x_hat(k|k-1)
+    x_hat(k|k) = x_hat(k|k-1) + K [z - h(x_hat(k|k-1))]        (bearing residual wrapped)
+    P(k|k) = (I - K g) P(k|k-1) (I - K g)' + K R K'
+
+g-rows (position columns; zeros for velocity and acceleration), with delta = wrap(beta_m - beta_hat):
+
+- bearing, Song & Speyer's "tan" form: g = [cos beta_m, -sin beta_m] / (x_hat sin beta_m + y_hat cos beta_m),
+  exact for tan(beta - beta_hat); the denominator equals r_hat cos(delta) and is clamped at
+  ``clamp`` r_hat in magnitude (spec 003) so the filter stays finite near own-ship.
+  ``bearing_row="exact"``: (delta / (r_hat sin delta)) [cos beta_m, -sin beta_m], exact for beta - beta_hat.
+- range, theorem 1 (the seed's A = BC factorisation): r - r_hat = [sin beta_bar, cos beta_bar] (p - p_hat) / cos(delta/2),
+  beta_bar = (beta_m + beta_hat)/2, exact when beta_m is the true bearing.
+
+The KF + MGEKF architecture runs, while the sonar is active, a linear Kalman filter on the
+relative position and velocity only (4 states, white-acceleration noise of PSD 2 sigma_m^2 tau)
+with converted measurements z_c = r_m [sin beta_m, cos beta_m], R_c = J diag(s_beta^2, s_r^2) J'
+at the measured values (notes 3.3), and the MGEKF while it is passive. At an active -> passive
+switch the KF's estimate is padded with the acceleration states: zero mean, variance
+``handover_acceleration_variance`` per axis, no cross-covariance (the KF never estimated them);
+at passive -> active the acceleration states are dropped. That structural mismatch is what the
+seed blames for its fluctuations; the spec found the effect hangs on the padding variance.
+
+Assumed where the seed is silent (spec 003): the filter starts at the first scan (active) with
+the converted position and its covariance, relative velocity = -own-ship velocity (target
+velocity unknown, zero mean) with ``initial_velocity_std`` per axis, and target acceleration
+zero with variance sigma_m^2.
+"""
+
+from __future__ import annotations
+
+import time as _time
+from dataclasses import dataclass
+
+import numpy as np
+
+from filters.base import TrackEstimate
+from filters.models import singer_process_noise, singer_transition
+
+STATE_NAMES = ("x", "y", "vx", "vy", "ax", "ay")
+
+
+# --------------------------------------------------------------------------------------------
+# Model (seed eqs 1-3, 6-7)
+# --------------------------------------------------------------------------------------------
+
+def relative_motion_model(dt: float, tau: float, sigma_m: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Phi (6, 6), Gamma_u (6, 2), Q (6, 6) of the relative state (rx, ry, vx, vy, ax, ay)."""
+    I2 = np.eye(2)
+    Phi = np.kron(singer_transition(dt, tau), I2)
+    Q = np.kron(singer_process_noise(dt, tau, sigma_m), I2)
+    Gamma = -np.vstack([dt * dt / 2.0 * I2, dt * I2, np.zeros((2, 2))])
+    return Phi, Gamma, Q
+
+
+def cv_relative_model(dt: float, density: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The 4-state KF's model (rx, ry, vx, vy): CV with white acceleration of PSD ``density``."""
+    I2 = np.eye(2)
+    Phi = np.kron(np.array([[1.0, dt], [0.0, 1.0]]), I2)
+    Q = density * np.kron(np.array([[dt**3 / 3.0, dt**2 / 2.0], [dt**2 / 2.0, dt]]), I2)
+    Gamma = -np.vstack([dt * dt / 2.0 * I2, dt * I2])
+    return Phi, Gamma, Q
+
+
+def wrap(angle: np.ndarray) -> np.ndarray:
+    """Into (-pi, pi]."""
+    w = np.mod(angle + np.pi, 2.0 * np.pi) - np.pi
+    return np.where(w == -np.pi, np.pi, w)
+
+
+def bearing_range(position: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(..., 2) relative (east, north) -> bearing from north clockwise, range."""
+    return np.arctan2(position[..., 0], position[..., 1]), np.hypot(position[..., 0], position[..., 1])
+
+
+# --------------------------------------------------------------------------------------------
+# Jacobians and modifiable g-rows (seed eqs 13-17, 23-24)
+# --------------------------------------------------------------------------------------------
+
+def jacobian_rows(position: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """EKF rows over (x, y): d beta = [y, -x]/r^2, d r = [x, y]/r; each (..., 2)."""
+    x, y = position[..., 0], position[..., 1]
+    r2 = x * x + y * y
+    r = np.sqrt(r2)
+    return np.stack([y / r2, -x / r2], -1), np.stack([x / r, y / r], -1)
+
+
+def bearing_g_row(position: np.ndarray, measured_bearing: np.ndarray, form: str = "tan",
+                  clamp: float = 0.1) -> np.ndarray:
+    """The bearing's modifiable row over (x, y) (Song & Speyer), with the measured bearing."""
+    s, c = np.sin(measured_bearing), np.cos(measured_bearing)
+    direction = np.stack([c, -s], -1)
+    r_hat = np.hypot(position[..., 0], position[..., 1])
+    if form == "tan":
+        denominator = position[..., 0] * s + position[..., 1] * c          # = r_hat cos(delta)
+        floor = clamp * r_hat
+        denominator = np.where(np.abs(denominator) < floor, np.where(denominator < 0, -floor, floor), denominator)
+        return direction / denominator[..., None]
+    delta = wrap(measured_bearing - bearing_range(position)[0])
+    ratio = np.where(np.abs(delta) < 1e-8, 1.0, delta / np.where(delta == 0, 1.0, np.sin(delta)))
+    return direction * (ratio / r_hat)[..., None]
+
+
+def range_g_row(position: np.ndarray, measured_bearing: np.ndarray) -> np.ndarray:
+    """Theorem 1's row: r - r_hat = [sin b, cos b] (p - p_hat) / cos(delta/2), b = (beta_m + beta_hat)/2."""
+    beta_hat = bearing_range(position)[0]
+    delta = wrap(measured_bearing - beta_hat)
+    mean = beta_hat + 0.5 * delta
+    return np.stack([np.sin(mean), np.cos(mean)], -1) / np.cos(0.5 * delta)[..., None]
+
+
+# --------------------------------------------------------------------------------------------
+# Updates, batched over the leading axes
+# --------------------------------------------------------------------------------------------
+
+def _pad(rows: np.ndarray, n: int) -> np.ndarray:
+    """(..., m, 2) rows over (x, y) -> (..., m, n) over the whole state."""
+    out = np.zeros(rows.shape[:-1] + (n,))
+    out[..., :2] = rows
+    return out
+
+
+def nonlinear_update(x: np.ndarray, P: np.ndarray, z: np.ndarray, active: bool, bearing_std: float,
+                     range_std: float, modified: bool = True, bearing_form: str = "tan", clamp: float = 0.1
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """One MGEKF (``modified``) or EKF update with bearing (and range when ``active``).
+
+    x (R, n), P (R, n, n), z (R, 2) = (bearing, range). The gain uses the EKF Jacobian at the
+    prediction; the MGEKF's covariance update uses the g-rows with the measured bearing.
+    """
+    n = x.shape[-1]
+    position = x[..., :2]
+    beta_hat, r_hat = bearing_range(position)
+    d_beta, d_r = jacobian_rows(position)
+    if active:
+        H = _pad(np.stack([d_beta, d_r], -2), n)
+        residual = np.stack([wrap(z[..., 0] - beta_hat), z[..., 1] - r_hat], -1)
+        R = np.diag([bearing_std**2, range_std**2])
+    else:
+        H = _pad(d_beta[..., None, :], n)
+        residual = wrap(z[..., 0] - beta_hat)[..., None]
+        R = np.array([[bearing_std**2]])
+    PHt = P @ np.swapaxes(H, -1, -2)
+    S = H @ PHt + R
+    gain = np.swapaxes(np.linalg.solve(S, np.swapaxes(PHt, -1, -2)), -1, -2)
+    x_new = x + np.einsum("rij,rj->ri", gain, residual)
+    if modified:
+        g_beta = bearing_g_row(position, z[..., 0], bearing_form, clamp)
+        rows = [g_beta, range_g_row(position, z[..., 0])] if active else [g_beta]
+        G = _pad(np.stack(rows, -2), n)
+    else:
+        G = H
+    A = np.broadcast_to(np.eye(n), P.shape) - gain @ G
+    P_new = A @ P @ np.swapaxes(A, -1, -2) + gain @ R @ np.swapaxes(gain, -1, -2)   # Joseph form
+    return x_new, 0.5 * (P_new + np.swapaxes(P_new, -1, -2))
+
+
+def converted_update(x: np.ndarray, P: np.ndarray, z: np.ndarray, bearing_std: float, range_std: float
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """Linear KF update on the converted active measurement r [sin beta, cos beta] (notes 3.3)."""
+    n = x.shape[-1]
+    beta, r = z[..., 0], z[..., 1]
+    converted = np.stack([r * np.sin(beta), r * np.cos(beta)], -1)
+    J = np.stack([np.stack([r * np.cos(beta), np.sin(beta)], -1),
+                  np.stack([-r * np.sin(beta), np.cos(beta)], -1)], -2)          # d(x, y)/d(beta, r)
+    R = J @ np.diag([bearing_std**2, range_std**2]) @ np.swapaxes(J, -1, -2)
+    H = np.zeros((2, n))
+    H[:, :2] = np.eye(2)
+    PHt = P[..., :, :2]
+    S = P[..., :2, :2] + R
+    gain = np.swapaxes(np.linalg.solve(S, np.swapaxes(PHt, -1, -2)), -1, -2)
+    x_new = x + np.einsum("rij,rj->ri", gain, converted - x[..., :2])
+    A = np.broadcast_to(np.eye(n), P.shape) - gain @ H
+    P_new = A @ P @ np.swapaxes(A, -1, -2) + gain @ R @ np.swapaxes(gain, -1, -2)
+    return x_new, 0.5 * (P_new + np.swapaxes(P_new, -1, -2))
+
+
+# --------------------------------------------------------------------------------------------
+# Inputs and the architectures
+# --------------------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class SonarReports:
+    """What the sonar trackers consume, batched over R runs and K scans (one per dt).
+
+    time (K,); z (R, K, 2) measured (bearing [rad], range [m]; range NaN when passive);
+    active (K,) bool; ownship_acceleration (R, K, 2) the known own-ship input u(k), held over
+    [t_k, t_k+1); ownship_velocity0 (R, 2) own-ship velocity at the first scan; bearing_std [rad],
+    range_std [m].
+    """
+
+    time: np.ndarray
+    z: np.ndarray
+    active: np.ndarray
+    ownship_acceleration: np.ndarray
+    ownship_velocity0: np.ndarray
+    bearing_std: float
+    range_std: float
+
+    def __post_init__(self) -> None:
+        K = self.time.shape[0]
+        R = self.z.shape[0]
+        if self.z.shape != (R, K, 2) or self.active.shape != (K,) or self.ownship_acceleration.shape != (R, K, 2):
+            raise ValueError(f"SonarReports: z {self.z.shape}, active {self.active.shape} and ownship_acceleration "
+                             f"{self.ownship_acceleration.shape} must be (R, K, 2), (K,), (R, K, 2)")
+        if K < 2 or not bool(self.active[0]):
+            raise ValueError("SonarReports: the trackers start from an active (range + bearing) first scan")
+        if np.any(np.diff(self.time) <= 0):
+            raise ValueError("SonarReports: scan times must increase")
+
+
+class _SonarTracker:
+    """Shared set-up of the architectures; see the module docstring for the model."""
+
+    def __init__(self, name: str, tau: float = 60.0, sigma_m: float = 0.01, initial_velocity_std: float = 15.0,
+                 bearing_row: str = "tan", clamp: float = 0.1) -> None:
+        for key, value in (("tau", tau), ("sigma_m", sigma_m), ("initial_velocity_std", initial_velocity_std)):
+            if not (np.isfinite(value) and value > 0):
+                raise ValueError(f"{key}: {value} must be a finite number > 0")
+        if bearing_row not in ("tan", "exact"):
+            raise ValueError(f"bearing_row: {bearing_row!r} is not allowed; use 'tan' (Song & Speyer) or 'exact'")
+        if not (0 < clamp < 1):
+            raise ValueError(f"clamp: {clamp} must be in (0, 1): the bearing row's denominator floor as a "
+                             f"fraction of the range")
+        self.name = name
+        self.tau = float(tau)
+        self.sigma_m = float(sigma_m)
+        self.initial_velocity_std = float(initial_velocity_std)
+        self.bearing_row = bearing_row
+        self.clamp = float(clamp)
+
+    def _start(self, reports: SonarReports, n: int) -> tuple[np.ndarray, np.ndarray]:
+        """State and covariance after the first (active) scan: converted position, velocity prior."""
+        R = reports.z.shape[0]
+        beta, r = reports.z[:, 0, 0], reports.z[:, 0, 1]
+        x = np.zeros((R, n))
+        x[:, 0], x[:, 1] = r * np.sin(beta), r * np.cos(beta)
+        x[:, 2:4] = -reports.ownship_velocity0                 # target velocity unknown: zero mean
+        J = np.stack([np.stack([r * np.cos(beta), np.sin(beta)], -1),
+                      np.stack([-r * np.sin(beta), np.cos(beta)], -1)], -2)
+        P = np.zeros((R, n, n))
+        P[:, :2, :2] = J @ np.diag([reports.bearing_std**2, reports.range_std**2]) @ np.swapaxes(J, -1, -2)
+        P[:, 2:4, 2:4] = self.initial_velocity_std**2 * np.eye(2)
+        if n == 6:
+            P[:, 4:, 4:] = self.sigma_m**2 * np.eye(2)
+        return x, P
+
+    def _models(self, dt: float):
+        return relative_motion_model(dt, self.tau, self.sigma_m), cv_relative_model(
+            dt, 2.0 * self.sigma_m**2 * self.tau)
+
+    def run(self, reports: SonarReports) -> TrackEstimate:
+        started = _time.perf_counter()
+        R, K, _ = reports.z.shape
+        states = np.full((R, K, 6), np.nan)
+        covariances = np.full((R, K, 6, 6), np.nan)
+        x, P = self._first(reports)
+        self._store(states, covariances, 0, x, P)
+        steps = np.diff(reports.time)
+        models = {}
+        for k in range(1, K):
+            dt = float(steps[k - 1])
+            if dt not in models:
+                models[dt] = self._models(dt)
+            x, P = self._step(x, P, reports, k, models[dt])
+            self._store(states, covariances, k, x, P)
+        extras = {"active": np.broadcast_to(reports.active.astype(np.int8), (R, K)).copy()}
+        return TrackEstimate(reports.time.copy(), states, covariances, extras, _time.perf_counter() - started)
+
+    @staticmethod
+    def _store(states, covariances, k, x, P) -> None:
+        n = x.shape[-1]
+        states[:, k, :n] = x
+        covariances[:, k, :n, :n] = P
+
+    @staticmethod
+    def _predict(x, P, u, model):
+        Phi, Gamma, Q = model
+        return x @ Phi.T + u @ Gamma.T, Phi @ P @ Phi.T + Q
+
+
+class OnlyMGEKF(_SonarTracker):
+    """The seed's proposal: one 6-state MGEKF throughout, range + bearing when active (theorem 1),
+    bearing when passive. ``modified=False`` is the plain EKF on the same model (beyond the paper)."""
+
+    modified = True
+
+    def __init__(self, name: str = "only MGEKF", **kwargs) -> None:
+        super().__init__(name, **kwargs)
+
+    def _first(self, reports):
+        return self._start(reports, 6)
+
+    def _step(self, x, P, reports, k, models):
+        x, P = self._predict(x, P, reports.ownship_acceleration[:, k - 1], models[0])
+        return nonlinear_update(x, P, reports.z[:, k], bool(reports.active[k]), reports.bearing_std,
+                                reports.range_std, self.modified, self.bearing_row, self.clamp)
+
+
+class PlainEKF(OnlyMGEKF):
+    """A plain EKF on the 6-state model with the same measurements (reference, beyond the paper)."""
+
+    modified = False
+
+    def __init__(self, name: str = "EKF", **kwargs) -> None:
+        super().__init__(name, **kwargs)
+
+
+class KFPlusMGEKF(_SonarTracker):
+    """The seed's baseline: a 4-state converted-measurement KF while active, the 6-state MGEKF while
+    passive, handing (x, P) over at each switch.
+
+    ``handover_acceleration_variance``: the variance [(m/s^2)^2] given to each padded acceleration
+    state at an active -> passive switch; "consistent" uses the model's sigma_m^2. Spec 003's two
+    reported settings are 0.1 (paper-like: "unknown, broad") and "consistent"; 1 or more makes runs
+    diverge and is refused.
+    """
+
+    def __init__(self, name: str = "KF + MGEKF", handover_acceleration_variance: float | str = 0.1, **kwargs) -> None:
+        super().__init__(name, **kwargs)
+        if handover_acceleration_variance == "consistent":
+            variance = self.sigma_m**2
+        else:
+            try:
+                variance = float(handover_acceleration_variance)
+            except (TypeError, ValueError):
+                variance = float("nan")
+            if not (np.isfinite(variance) and 0 < variance < 1.0):
+                raise ValueError(f"handover_acceleration_variance: {handover_acceleration_variance!r} must be "
+                                 f"'consistent' (sigma_m^2) or a variance in (0, 1) (m/s^2)^2; 1 or more makes the "
+                                 f"MGEKF diverge after the hand-over (spec 003)")
+        self.handover_acceleration_variance = variance
+
+    def _first(self, reports):
+        return self._start(reports, 4)
+
+    def _step(self, x, P, reports, k, models):
+        six, four = models
+        active, was_active = bool(reports.active[k]), bool(reports.active[k - 1])
+        if was_active and not active:                    # KF -> MGEKF: pad the acceleration states
+            x, P = pad_acceleration(x, P, self.handover_acceleration_variance)
+        elif active and not was_active:                  # MGEKF -> KF: drop them
+            x, P = x[:, :4].copy(), P[:, :4, :4].copy()
+        if active:
+            x, P = self._predict(x, P, reports.ownship_acceleration[:, k - 1], four)
+            return converted_update(x, P, reports.z[:, k], reports.bearing_std, reports.range_std)
+        x, P = self._predict(x, P, reports.ownship_acceleration[:, k - 1], six)
+        return nonlinear_update(x, P, reports.z[:, k], False, reports.bearing_std, reports.range_std, True,
+                                self.bearing_row, self.clamp)
+
+
+def pad_acceleration(x: np.ndarray, P: np.ndarray, variance: float) -> tuple[np.ndarray, np.ndarray]:
+    """(x4, P4) -> (x6, P6): acceleration zero mean, ``variance`` per axis, no cross-covariance."""
+    R = x.shape[0]
+    x6 = np.zeros((R, 6))
+    x6[:, :4] = x
+    P6 = np.zeros((R, 6, 6))
+    P6[:, :4, :4] = P
+    P6[:, 4:, 4:] = variance * np.eye(2)
+    return x6, P6

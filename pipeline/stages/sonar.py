@@ -1,0 +1,118 @@
+"""Track and evaluate stages of the active/passive sonar study (spec 003, seed 003).
+
+The trackers need what the sonar reports (bearing, and range when active, per scan), the sensor
+schedule, and the own-ship's own motion (the known input u of the relative-motion model, and its
+velocity at the start). The truth carries the own-ship as labels; this adapter hands the
+trackers only the own-ship part of it.
+
+Per-step metrics are the generic ones (position/velocity RMSE, NEES over the finite states)
+plus ``position_rmse_x`` / ``position_rmse_y``. The summary adds the seed's Table 1 reading,
+RMS over all runs and steps (``rmse_x``, ``rmse_y``, window "all"), the median of the per-run
+RMSEs (``median_run_rmse_x``/``_y``), the median over runs of the per-run ratio to the reference
+variant (``paired_ratio_x``/``_y``), and the peak of the per-step position RMSE within
+``bump_window`` seconds after each active -> passive switch (``peak_position_rmse``, window
+"after <t> s").
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from filters.mgekf import STATE_NAMES, SonarReports
+from pipeline import schemas
+from pipeline.data import Detections, Truth
+from pipeline.errors import ConfigError
+from pipeline.stages.evaluate import _quiet_nanmean, per_step_metrics
+
+UNITS = {"position_rmse_x": "m", "position_rmse_y": "m", "rmse_x": "m", "rmse_y": "m", "median_run_rmse_x": "m",
+         "median_run_rmse_y": "m", "paired_ratio_x": "ratio to the reference variant, median over runs",
+         "paired_ratio_y": "ratio to the reference variant, median over runs", "peak_position_rmse": "m"}
+
+
+class SonarStudy:
+    """Adapter of study 003.
+
+    Parameters
+    ----------
+    bump_window : seconds after each active -> passive switch in which the peak position RMSE
+        is reported (spec 003: KF + MGEKF's error rises within 300 s of each switch)
+    """
+
+    estimate_table = "estimates"
+
+    def __init__(self, bump_window: float = 300.0) -> None:
+        if not (np.isfinite(bump_window) and bump_window > 0):
+            raise ValueError(f"bump_window: {bump_window} must be > 0 s")
+        self.bump_window = float(bump_window)
+
+    def check(self, scenario, sensor, estimators: dict) -> None:
+        if not hasattr(sensor, "is_active"):
+            raise ConfigError(f"sensors: {type(sensor).__name__} is not an active/passive sonar; the sonar study "
+                              f"needs one (e.g. sensors=sonar_case2).")
+        if not bool(np.asarray(sensor.is_active(np.array([0.0])))[0]):
+            raise ConfigError(f"sensors.active_intervals: {sensor.active_intervals} must start active at t = 0: the "
+                              f"trackers start from a range + bearing measurement.")
+
+    def track_input(self, truth: Truth, detections: Detections, sensor, seed: int) -> SonarReports:
+        for label in ("ownship", "ownship_acceleration"):
+            if label not in truth.labels:
+                raise ValueError(f"scenario: the truth has no '{label}' label; the sonar trackers need the own-ship's "
+                                 f"motion (use pipeline.scenarios.sonar.SonarEncounter)")
+        return SonarReports(detections.time, detections.z[:, :, 0], detections.sensor == 1,
+                            truth.labels["ownship_acceleration"][:, :, 0], truth.labels["ownship"][:, 0, 0, 2:4],
+                            float(sensor.bearing_std), float(sensor.range_std))
+
+    @staticmethod
+    def estimate_to_frame(estimate):
+        return schemas.estimate_to_frame(estimate, STATE_NAMES)
+
+    @staticmethod
+    def per_step_metrics(truth: Truth, estimate, sensor) -> dict[str, np.ndarray]:
+        out = per_step_metrics(truth, estimate)
+        err = estimate.state[..., :2] - truth.state[:, :, 0, :2]
+        with np.errstate(invalid="ignore"), _quiet_nanmean():
+            out["position_rmse_x"] = np.sqrt(np.nanmean(err[..., 0] ** 2, axis=0))
+            out["position_rmse_y"] = np.sqrt(np.nanmean(err[..., 1] ** 2, axis=0))
+        return out
+
+    @staticmethod
+    def metric_units(names) -> dict[str, str]:
+        return {n: UNITS[n] for n in names if n in UNITS}
+
+    @staticmethod
+    def record(path, **kwargs) -> None:
+        from pipeline.recording_sonar import write_sonar_recording
+        write_sonar_recording(path, **kwargs)
+
+    def extra_summary(self, truth: Truth, estimates: dict, display: dict, runs: int, reference: str | None,
+                      sensor, per_variant: dict) -> list[dict]:
+        """Table 1 readings and the post-switch peaks (see the module docstring)."""
+        rows: list[dict] = []
+
+        def add(key, metric, window, value):
+            rows.append({"variant": display[key], "variant_key": key, "metric": metric, "window": window,
+                         "value": None if value is None else float(value), "unit": UNITS[metric], "n_runs": runs})
+
+        per_run = {}
+        for key, est in estimates.items():
+            err = est.state[..., :2] - truth.state[:, :, 0, :2]
+            with _quiet_nanmean():
+                add(key, "rmse_x", "all", np.sqrt(np.nanmean(err[..., 0] ** 2)))
+                add(key, "rmse_y", "all", np.sqrt(np.nanmean(err[..., 1] ** 2)))
+                per_run[key] = np.sqrt(np.nanmean(err**2, axis=1))            # (R, 2)
+            add(key, "median_run_rmse_x", "all", np.median(per_run[key][:, 0]))
+            add(key, "median_run_rmse_y", "all", np.median(per_run[key][:, 1]))
+        if reference in per_run:
+            for key in estimates:
+                ratio = per_run[key] / per_run[reference]
+                add(key, "paired_ratio_x", "all", np.median(ratio[:, 0]))
+                add(key, "paired_ratio_y", "all", np.median(ratio[:, 1]))
+        time = truth.time
+        active = np.asarray(sensor.is_active(time), dtype=bool)
+        switches = np.nonzero(active[:-1] & ~active[1:])[0] + 1               # first passive scan
+        for key, (_, metrics) in per_variant.items():
+            position = metrics["position_rmse"]
+            for k in switches:
+                inside = (time >= time[k]) & (time < time[k] + self.bump_window)
+                add(key, "peak_position_rmse", f"after {time[k]:g} s", np.nanmax(position[inside]))
+        return rows
