@@ -60,6 +60,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from filters.base import TrackEstimate
+from filters.kalman import shared_times, times_shared
 from filters.models import singer_process_noise, singer_transition
 
 STATE_NAMES = ("x", "y", "vx", "vy", "ax", "ay")
@@ -157,6 +158,9 @@ def nonlinear_update(x: np.ndarray, P: np.ndarray, z: np.ndarray, active: bool, 
     position = x[..., :2]
     beta_hat, r_hat = bearing_range(position)
     d_beta, d_r = jacobian_rows(position)
+    if not active:                                   # bearing only: scalar algebra, no matrix solves
+        g_beta = bearing_g_row(position, z[..., 0], bearing_form, clamp) if modified else d_beta
+        return _scalar_update(x, P, wrap(z[..., 0] - beta_hat), d_beta, g_beta, bearing_std**2)
     if active:
         H = _pad(np.stack([d_beta, d_r], -2), n)
         residual = np.stack([wrap(z[..., 0] - beta_hat), z[..., 1] - r_hat], -1)
@@ -177,6 +181,22 @@ def nonlinear_update(x: np.ndarray, P: np.ndarray, z: np.ndarray, active: bool, 
         G = H
     A = np.broadcast_to(np.eye(n), P.shape) - gain @ G
     P_new = A @ P @ np.swapaxes(A, -1, -2) + gain @ R @ np.swapaxes(gain, -1, -2)   # Joseph form
+    return x_new, 0.5 * (P_new + np.swapaxes(P_new, -1, -2))
+
+
+def _scalar_update(x: np.ndarray, P: np.ndarray, residual: np.ndarray, h: np.ndarray, g: np.ndarray,
+                   variance: float) -> tuple[np.ndarray, np.ndarray]:
+    """One scalar measurement whose Jacobian h and modifiable row g (R, 2) touch only (x, y):
+    K = P h' / s and the Joseph form (I - K g) P (I - K g)' + K r K', expanded into outer
+    products so each step is a handful of vector operations over the runs."""
+    PHt = np.einsum("rij,rj->ri", P[..., :, :2], h)
+    innovation_variance = np.einsum("ri,ri->r", PHt[..., :2], h) + variance
+    gain = PHt / innovation_variance[..., None]
+    x_new = x + gain * residual[..., None]
+    gP = np.einsum("rj,rji->ri", g, P[..., :2, :])
+    gPg = np.einsum("ri,ri->r", gP[..., :2], g)
+    cross = gain[..., :, None] * gP[..., None, :]
+    P_new = P - cross - np.swapaxes(cross, -1, -2) + (gPg + variance)[..., None, None] * gain[..., :, None] * gain[..., None, :]
     return x_new, 0.5 * (P_new + np.swapaxes(P_new, -1, -2))
 
 
@@ -301,7 +321,7 @@ class _SonarTracker:
     @staticmethod
     def _predict(x, P, u, model):
         Phi, Gamma, Q = model
-        return x @ Phi.T + u @ Gamma.T, Phi @ P @ Phi.T + Q
+        return x @ Phi.T + u @ Gamma.T, shared_times(Phi, times_shared(P, Phi.T)) + Q
 
 
 class OnlyMGEKF(_SonarTracker):
