@@ -64,7 +64,8 @@ class SonarStudy:
 
     @staticmethod
     def estimate_to_frame(estimate):
-        return schemas.estimate_to_frame(estimate, STATE_NAMES)
+        # 100 runs x 10 001 steps: the full float64 covariance would be ~200 MB per variant
+        return schemas.estimate_to_frame(estimate, STATE_NAMES, compact_covariance=True)
 
     @staticmethod
     def per_step_metrics(truth: Truth, estimate, sensor) -> dict[str, np.ndarray]:
