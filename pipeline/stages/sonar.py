@@ -50,7 +50,8 @@ class SonarStudy:
             raise ConfigError(f"sensors: {type(sensor).__name__} is not an active/passive sonar; the sonar study "
                               f"needs one (e.g. sensors=sonar_case2).")
         if not bool(np.asarray(sensor.is_active(np.array([0.0])))[0]):
-            raise ConfigError(f"sensors.active_intervals: {sensor.active_intervals} must start active at t = 0: the "
+            intervals = [[float(a), float(b)] for a, b in sensor.active_intervals]
+            raise ConfigError(f"sensors.active_intervals: {intervals} must start active at t = 0: the "
                               f"trackers start from a range + bearing measurement.")
 
     def track_input(self, truth: Truth, detections: Detections, sensor, seed: int) -> SonarReports:
