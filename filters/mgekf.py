@@ -154,13 +154,12 @@ def nonlinear_update(x: np.ndarray, P: np.ndarray, z: np.ndarray, active: bool, 
     x (R, n), P (R, n, n), z (R, 2) = (bearing, range). The gain uses the EKF Jacobian at the
     prediction; the MGEKF's covariance update uses the g-rows with the measured bearing.
     """
+    if not active:                                   # bearing only: scalar algebra, no matrix solves
+        return _bearing_only_update(x, P, z[..., 0], bearing_std**2, modified, bearing_form, clamp)
     n = x.shape[-1]
     position = x[..., :2]
     beta_hat, r_hat = bearing_range(position)
     d_beta, d_r = jacobian_rows(position)
-    if not active:                                   # bearing only: scalar algebra, no matrix solves
-        g_beta = bearing_g_row(position, z[..., 0], bearing_form, clamp) if modified else d_beta
-        return _scalar_update(x, P, wrap(z[..., 0] - beta_hat), d_beta, g_beta, bearing_std**2)
     if active:
         H = _pad(np.stack([d_beta, d_r], -2), n)
         residual = np.stack([wrap(z[..., 0] - beta_hat), z[..., 1] - r_hat], -1)
@@ -184,19 +183,34 @@ def nonlinear_update(x: np.ndarray, P: np.ndarray, z: np.ndarray, active: bool, 
     return x_new, 0.5 * (P_new + np.swapaxes(P_new, -1, -2))
 
 
-def _scalar_update(x: np.ndarray, P: np.ndarray, residual: np.ndarray, h: np.ndarray, g: np.ndarray,
-                   variance: float) -> tuple[np.ndarray, np.ndarray]:
-    """One scalar measurement whose Jacobian h and modifiable row g (R, 2) touch only (x, y):
-    K = P h' / s and the Joseph form (I - K g) P (I - K g)' + K r K', expanded into outer
-    products so each step is a handful of vector operations over the runs."""
-    PHt = np.einsum("rij,rj->ri", P[..., :, :2], h)
-    innovation_variance = np.einsum("ri,ri->r", PHt[..., :2], h) + variance
-    gain = PHt / innovation_variance[..., None]
-    x_new = x + gain * residual[..., None]
-    gP = np.einsum("rj,rji->ri", g, P[..., :2, :])
-    gPg = np.einsum("ri,ri->r", gP[..., :2], g)
-    cross = gain[..., :, None] * gP[..., None, :]
-    P_new = P - cross - np.swapaxes(cross, -1, -2) + (gPg + variance)[..., None, None] * gain[..., :, None] * gain[..., None, :]
+def _bearing_only_update(x: np.ndarray, P: np.ndarray, bearing: np.ndarray, variance: float, modified: bool,
+                         form: str, clamp: float) -> tuple[np.ndarray, np.ndarray]:
+    """The passive (bearing-only) MGEKF / EKF update written out for one scalar measurement whose
+    Jacobian h and modifiable row g touch only (x, y): K = P h' / s, and the Joseph form
+    (I - K g) P (I - K g)' + K r K' expanded into outer products. The same algebra as the matrix
+    form of ``nonlinear_update`` (tested equal), in a handful of vector operations per scan: the
+    trackers spend ~85 % of their scans here."""
+    px, py = x[:, 0], x[:, 1]
+    r2 = px * px + py * py
+    h0, h1 = py / r2, -px / r2                                            # d beta / d(x, y)
+    if not modified:
+        g0, g1 = h0, h1
+    elif form == "tan":
+        s, c = np.sin(bearing), np.cos(bearing)
+        denominator = px * s + py * c                                      # r_hat cos(delta)
+        floor = clamp * np.sqrt(r2)
+        denominator = np.where(np.abs(denominator) < floor, np.where(denominator < 0, -floor, floor), denominator)
+        g0, g1 = c / denominator, -s / denominator
+    else:
+        g0, g1 = np.moveaxis(bearing_g_row(x[:, :2], bearing, form, clamp), -1, 0)
+    residual = wrap(bearing - np.arctan2(px, py))
+    PHt = P[:, :, 0] * h0[:, None] + P[:, :, 1] * h1[:, None]
+    gain = PHt / (PHt[:, 0] * h0 + PHt[:, 1] * h1 + variance)[:, None]
+    x_new = x + gain * residual[:, None]
+    gP = g0[:, None] * P[:, 0, :] + g1[:, None] * P[:, 1, :]
+    gPg = gP[:, 0] * g0 + gP[:, 1] * g1
+    cross = gain[:, :, None] * gP[:, None, :]
+    P_new = P - cross - np.swapaxes(cross, -1, -2) + ((gPg + variance)[:, None] * gain)[:, :, None] * gain[:, None, :]
     return x_new, 0.5 * (P_new + np.swapaxes(P_new, -1, -2))
 
 
