@@ -1,0 +1,513 @@
+"""Multi-sensor bearings-only tracking in clutter with an auxiliary multiple-model particle filter
+(seed 004: Kim, Song, Oh), a bootstrap multiple-model SIR for comparison, and an EKF baseline.
+
+Model (seed eqs 1-10, literature notes 6.1-6.2). Augmented state of 20: the target (x, y, vx, vy)
+and four drifting sonobuoys (x, y, vx, vy each); x east, y north. The target's mode r in
+{1: CV, 2, 3: coordinated turns} is a Markov chain (transition matrix ``tpm``); the turn rate is
+Omega_j = (-1)^j a_m / max(|v|, 0.5) (eq 5, from each particle's own target velocity), so r = 2
+turns counter-clockwise (Omega > 0) and r = 3 clockwise, whatever the seed's labels say. The
+coordinated-turn transition is eq 4 (CV in the limit Omega -> 0); buoys move CV (eq 2).
+Process noise enters through Gamma = [[g, 0], [0, g], [T, 0], [0, T]] per object with
+g = T^2/2 (``noise_gain="standard"``, the literature notes' correction) or T/2 (``"paper"``,
+eq 6 as printed), target sigma and buoy sigma separate.
+
+Measurements (eqs 7-10): the bearing of the target from each buoy and of each buoy from the
+known observer, atan2(dx, dy) from north; residuals are always wrapped. A missed component (NaN)
+contributes nothing. Clutter (spec 004): each received component's likelihood is the two-
+component mixture (1 - p_c) N(e; 0, s^2) + p_c N(e; 0, s_c^2), evaluated in the log domain.
+
+AMMPF (Ristic, Arulampalam & Gordon, "Beyond the Kalman Filter"; seed eqs 11-17), per scan:
+1. first stage: for every particle i and mode m, the noise-free predicted mean mu(i, m) and
+   lambda(i, m) = w_i pi(r_i -> m) p(z | mu(i, m)) (eq 16), normalised over the 3N pairs;
+2. systematic resampling of N (parent, mode) pairs from lambda;
+3. propagation of each parent under its drawn mode with process noise (eq 15);
+4. second-stage weights p(z | x) / p(z | mu(parent, mode)) (eq 17), normalised;
+5. output: weighted mean and covariance, mode probabilities, effective sample size;
+6. systematic resampling (every scan, as the seed), then
+7. Liu-West regularisation [spec 004, resolved]: X <- a X + (1 - a) mean + h chol(cov) eps with
+   a = sqrt(1 - h^2) on all 20 states (``lw_h``; 0 is the paper-faithful ablation). Without it the
+   cloud collapses in the 20-state space (16 nearly static buoy states) while the ESS stays near N.
+
+SIR-MM: the bootstrap multiple-model filter (mode drawn from the transition matrix, weights from
+the likelihood), the same resampling and regularisation. EKF: one CV model on the same 20 states,
+Joseph update on the received components, moment-matched variances in clutter (notes 6.4).
+
+Batching: particles are (runs, particles, state) arrays; there is no Python loop over runs,
+particles or modes inside a scan. Systematic resampling is vectorised over runs by offsetting each
+run's cumulative weights by its run index and searching all runs at once. Random numbers come
+from one generator per run (spawned from the seed), so run r's particles do not depend on R.
+"""
+
+from __future__ import annotations
+
+import os
+import time as _time
+import zlib
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+
+from filters.base import TrackEstimate
+
+TARGET_STATES = ("x", "y", "vx", "vy")
+STATE_NAMES = TARGET_STATES + tuple(f"b{i}_{c}" for i in range(1, 5) for c in ("x", "y", "vx", "vy"))
+BUOYS = 4
+LOG_2PI = float(np.log(2.0 * np.pi))
+TWO_PI = 2.0 * np.pi
+MIN_SPEED = 0.5                     # [m/s] floor of |v| in eq 5 (spec 004)
+
+
+# --------------------------------------------------------------------------------------------
+# Model pieces
+# --------------------------------------------------------------------------------------------
+
+def wrap(angle: np.ndarray) -> np.ndarray:
+    """Into [-pi, pi] (residuals; the end point does not matter for a density). A multiply and a
+    rint: cheaper than np.mod on the (runs x particles x modes x bearings) arrays."""
+    return angle - angle.dtype.type(TWO_PI) * np.rint(angle * angle.dtype.type(1.0 / TWO_PI))
+
+
+def noise_gain(dt: float, form: str = "standard") -> np.ndarray:
+    """Gamma (4, 2) of eq 6: position gain T^2/2 ("standard") or T/2 ("paper", as printed)."""
+    g = dt * dt / 2.0 if form == "standard" else dt / 2.0
+    return np.array([[g, 0.0], [0.0, g], [dt, 0.0], [0.0, dt]])
+
+
+def turn_rates(velocity: np.ndarray, max_acceleration: float) -> np.ndarray:
+    """(..., 2) target velocity -> (..., 3) Omega per mode: 0 (CV), +a/|v|, -a/|v| (eq 5)."""
+    speed = np.maximum(np.hypot(velocity[..., 0], velocity[..., 1]), MIN_SPEED)
+    omega = max_acceleration / speed
+    return np.stack([np.zeros_like(omega), omega, -omega], axis=-1)
+
+
+def coordinated_turn(target: np.ndarray, omega: np.ndarray, dt: float) -> np.ndarray:
+    """Eq 4 applied to (..., 4) target states with turn rates (...); CV where |Omega| < 1e-9."""
+    x, y, vx, vy = target[..., 0], target[..., 1], target[..., 2], target[..., 3]
+    wt = omega * dt
+    small = np.abs(omega) < 1e-9
+    safe = np.where(small, 1.0, omega)
+    s, c = np.sin(wt), np.cos(wt)
+    a = np.where(small, dt, s / safe)                    # sin(wT)/w
+    b = np.where(small, 0.0, (1.0 - c) / safe)           # (1 - cos(wT))/w
+    return np.stack([x + a * vx - b * vy, y + b * vx + a * vy, c * vx - s * vy, s * vx + c * vy], axis=-1)
+
+
+def predicted_positions(target: np.ndarray, speed_floor_rate: float, dt: float) -> np.ndarray:
+    """Noise-free predicted target positions (..., 3, 2) under the three modes (eq 4 with eq 5's
+    Omega = 0, +a/|v|, -a/|v|). Only positions: the first stage needs nothing else. The two turns
+    share sin and cos: sin(wT)/w is even in w and (1 - cos wT)/w odd."""
+    x, y, vx, vy = target[..., 0], target[..., 1], target[..., 2], target[..., 3]
+    omega = speed_floor_rate / np.maximum(np.hypot(vx, vy), MIN_SPEED)
+    wt = omega * dt
+    small = omega < 1e-9
+    safe = np.where(small, 1.0, omega)
+    a = np.where(small, dt, np.sin(wt) / safe)
+    b = np.where(small, 0.0, (1.0 - np.cos(wt)) / safe)
+    out = np.empty(target.shape[:-1] + (3, 2))
+    out[..., 0, 0], out[..., 0, 1] = x + dt * vx, y + dt * vy
+    ax, ay, bx, by = a * vx, a * vy, b * vy, b * vx
+    out[..., 1, 0], out[..., 1, 1] = x + ax - bx, y + by + ay
+    out[..., 2, 0], out[..., 2, 1] = x + ax + bx, y - by + ay
+    return out
+
+
+def cv_transition(dt: float) -> np.ndarray:
+    return np.array([[1.0, 0.0, dt, 0.0], [0.0, 1.0, 0.0, dt], [0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 1.0]])
+
+
+def bearings(state: np.ndarray, observer: np.ndarray) -> np.ndarray:
+    """(..., 20) -> (..., 8): target from each buoy (4), each buoy from the observer (4) (eq 9)."""
+    target = state[..., None, 0:2]
+    buoys = state[..., 4:20].reshape(state.shape[:-1] + (BUOYS, 4))[..., 0:2]
+    d_target = target - buoys
+    d_buoy = buoys - observer
+    return np.concatenate([np.arctan2(d_target[..., 0], d_target[..., 1]),
+                           np.arctan2(d_buoy[..., 0], d_buoy[..., 1])], axis=-1)
+
+
+@dataclass(frozen=True)
+class BearingLikelihood:
+    """log p(z | bearings) per component: the two-component clutter mixture (or the nominal
+    Gaussian when p_c = 0), missed components (NaN) contribute 0. std, clutter_std (8,) rad."""
+
+    std: np.ndarray
+    clutter_std: np.ndarray
+    clutter_probability: float = 0.0
+
+    def log(self, predicted: np.ndarray, z: np.ndarray) -> np.ndarray:
+        """predicted (..., C) bearings of the components in z's last axis; z broadcastable, NaN missed.
+
+        The mixture is summed as densities (two exps and a log, cheaper than logaddexp): the clutter
+        component keeps it above ~1e-282 for any residual, so it cannot underflow to 0."""
+        missed = np.isnan(z)
+        e = wrap(np.where(missed, 0.0, z) - predicted)
+        e2 = e * e
+        if self.clutter_probability > 0:
+            value = np.log(self._nominal_scale * np.exp(e2 * self._nominal_factor)
+                           + self._clutter_scale * np.exp(e2 * self._clutter_factor))
+        else:
+            value = e2 * self._nominal_factor + self._nominal_log_scale
+        return np.where(missed, 0.0, value)
+
+    def __post_init__(self) -> None:
+        std, clutter, pc = np.asarray(self.std, dtype=float), np.asarray(self.clutter_std, dtype=float), \
+            float(self.clutter_probability)
+        # float32 constants: the particle filters evaluate this on float32 bearings (see there)
+        f32 = np.float32
+        object.__setattr__(self, "_nominal_factor", (-0.5 / std**2).astype(f32))
+        object.__setattr__(self, "_clutter_factor", (-0.5 / clutter**2).astype(f32))
+        object.__setattr__(self, "_nominal_log_scale", (-np.log(std) - 0.5 * LOG_2PI).astype(f32))
+        object.__setattr__(self, "_nominal_scale", ((1.0 - pc) / (np.sqrt(2.0 * np.pi) * std)).astype(f32))
+        object.__setattr__(self, "_clutter_scale", (pc / (np.sqrt(2.0 * np.pi) * clutter)).astype(f32))
+
+    def subset(self, columns: slice) -> "BearingLikelihood":
+        return BearingLikelihood(self.std[columns], self.clutter_std[columns], self.clutter_probability)
+
+
+# --------------------------------------------------------------------------------------------
+# Resampling and regularisation, vectorised over runs
+# --------------------------------------------------------------------------------------------
+
+def systematic_resample(log_weights: np.ndarray, offsets: np.ndarray, draws: int) -> np.ndarray:
+    """Systematic resampling per run. log_weights (R, M) (unnormalised), offsets (R,) uniform [0, 1);
+    returns (R, draws) indices into M. Each run's normalised cumulative weights are shifted by its
+    run index, so one searchsorted serves every run."""
+    R, M = log_weights.shape
+    w = np.exp(log_weights - log_weights.max(axis=1, keepdims=True))
+    cumulative = np.cumsum(w, axis=1)
+    cumulative /= cumulative[:, -1:]
+    cumulative[:, -1] = 1.0
+    run = np.arange(R)[:, None]
+    points = (offsets[:, None] + np.arange(draws)[None, :]) / draws
+    flat = np.searchsorted((cumulative + run).ravel(), (points + run).ravel(), side="right")
+    return np.minimum(flat.reshape(R, draws) - run * M, M - 1)
+
+
+def normalise_log(log_weights: np.ndarray) -> np.ndarray:
+    """(R, M) log weights -> normalised weights."""
+    w = np.exp(log_weights - log_weights.max(axis=1, keepdims=True))
+    return w / w.sum(axis=1, keepdims=True)
+
+
+def weighted_moments(particles: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(R, N, n), (R, N) -> mean (R, n), covariance (R, n, n)."""
+    mean = (weights[:, None, :] @ particles)[:, 0]
+    centred = particles - mean[:, None, :]
+    covariance = np.swapaxes(centred * weights[..., None], -1, -2) @ centred     # batched BLAS, not einsum
+    return mean, 0.5 * (covariance + np.swapaxes(covariance, -1, -2))
+
+
+def liu_west(particles: np.ndarray, h: float, normals: np.ndarray) -> np.ndarray:
+    """Liu-West shrinkage kernel on equally weighted particles: a X + (1 - a) mean + h L eps,
+    a = sqrt(1 - h^2), L L' the particles' covariance (jittered to stay positive definite)."""
+    N, n = particles.shape[1:]
+    mean = particles.mean(axis=1)
+    centred = particles - mean[:, None, :]
+    covariance = (np.swapaxes(centred, -1, -2) @ centred) / N
+    scale = np.maximum(np.diagonal(covariance, axis1=-2, axis2=-1), 1e-12)
+    covariance = covariance + np.eye(n) * (1e-9 * scale)[:, None, :]
+    L = np.linalg.cholesky(covariance)
+    a = np.sqrt(1.0 - h * h)
+    return a * particles + (1.0 - a) * mean[:, None, :] + h * (normals @ np.swapaxes(L, -1, -2))
+
+
+# --------------------------------------------------------------------------------------------
+# Inputs
+# --------------------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class BuoyReports:
+    """What the trackers consume, batched over R runs and K scans (scan 0 is the start).
+
+    z (R, K, 8) bearings [rad] (NaN where missed); observer (2,); std / clutter_std (8,) nominal and
+    clutter standard deviations [rad]; clutter_probability; prior_mean (R, 20) and prior_std (20,):
+    the start, identical for every filter; seed: the filters' random numbers (per run).
+    """
+
+    time: np.ndarray
+    z: np.ndarray
+    observer: np.ndarray
+    std: np.ndarray
+    clutter_std: np.ndarray
+    clutter_probability: float
+    prior_mean: np.ndarray
+    prior_std: np.ndarray
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        R, K = self.z.shape[:2]
+        if self.z.shape != (R, K, 8) or self.time.shape != (K,) or self.prior_mean.shape != (R, 20):
+            raise ValueError(f"BuoyReports: time {self.time.shape}, z {self.z.shape}, prior_mean {self.prior_mean.shape} "
+                             f"must be (K,), (R, K, 8), (R, 20)")
+        if self.std.shape != (8,) or self.clutter_std.shape != (8,) or self.prior_std.shape != (20,):
+            raise ValueError("BuoyReports: std and clutter_std must be (8,), prior_std (20,)")
+
+    def likelihood(self) -> BearingLikelihood:
+        return BearingLikelihood(self.std, self.clutter_std, self.clutter_probability)
+
+    def generators(self, stream: str) -> list[np.random.Generator]:
+        key = zlib.crc32(stream.encode())
+        return [np.random.default_rng(np.random.SeedSequence(entropy=self.seed, spawn_key=(key, r)))
+                for r in range(self.z.shape[0])]
+
+
+def _stack(generators, draw) -> np.ndarray:
+    return np.stack([draw(g) for g in generators])
+
+
+# --------------------------------------------------------------------------------------------
+# The filters
+# --------------------------------------------------------------------------------------------
+
+class _ModelParameters:
+    def __init__(self, name: str, max_acceleration: float, target_sigma: float, buoy_sigma: float,
+                 noise_gain: str = "standard") -> None:
+        for key, value in (("max_acceleration", max_acceleration), ("target_sigma", target_sigma),
+                           ("buoy_sigma", buoy_sigma)):
+            if not (np.isfinite(value) and value >= 0):
+                raise ValueError(f"{key}: {value} must be a finite number >= 0 (m/s^2)")
+        if noise_gain not in ("standard", "paper"):
+            raise ValueError(f"noise_gain: {noise_gain!r} is not allowed; use 'standard' (T^2/2) or 'paper' "
+                             f"(T/2, eq 6 as printed)")
+        self.name = name
+        self.max_acceleration = float(max_acceleration)
+        self.target_sigma = float(target_sigma)
+        self.buoy_sigma = float(buoy_sigma)
+        self.noise_gain = noise_gain
+
+    def _process_noise(self, dt: float) -> np.ndarray:
+        """Q (20, 20) = B blkdiag(sigma_t^2 I2, sigma_s^2 I8) B'."""
+        G = noise_gain(dt, self.noise_gain)
+        Q = np.zeros((20, 20))
+        for block in range(5):
+            sigma = self.target_sigma if block == 0 else self.buoy_sigma
+            Q[4 * block:4 * block + 4, 4 * block:4 * block + 4] = sigma**2 * (G @ G.T)
+        return Q
+
+
+class MultipleModelParticleFilter(_ModelParameters):
+    """AMMPF (``auxiliary=True``, the seed's filter) or bootstrap SIR-MM (``auxiliary=False``).
+
+    Parameters
+    ----------
+    particles : N per run
+    max_acceleration : a_m of eq 5 [m/s^2]
+    target_sigma, buoy_sigma : process-noise std of the target and of each buoy [m/s^2]
+    tpm : 3 x 3 mode transition matrix, rows = from (1 CV, 2 Omega > 0, 3 Omega < 0)
+    lw_h : Liu-West kernel width h (0 = off, the paper-faithful ablation)
+    noise_gain : "standard" (T^2/2) or "paper" (T/2)
+    auxiliary : True for the AMMPF, False for the bootstrap SIR-MM
+    chunk_runs : runs filtered together (memory locality and threads; results do not depend on it);
+        None: a whole number of chunks per worker, at most 25 runs each
+    workers : threads filtering chunks in parallel (None: one per processor); results do not depend on it
+    """
+
+    def __init__(self, name: str = "AMMPF", particles: int = 1000, max_acceleration: float = 0.01,
+                 target_sigma: float = 0.05, buoy_sigma: float = 0.0005,
+                 tpm: Sequence[Sequence[float]] = ((0.95, 0.025, 0.025), (0.025, 0.95, 0.025), (0.025, 0.025, 0.95)),
+                 lw_h: float = 0.3, noise_gain: str = "standard", auxiliary: bool = True, chunk_runs: int | None = None,
+                 workers: int | None = None) -> None:
+        super().__init__(name, max_acceleration, target_sigma, buoy_sigma, noise_gain)
+        if not (isinstance(particles, int) and not isinstance(particles, bool) and particles >= 10):
+            raise ValueError(f"particles: {particles!r} must be an integer >= 10")
+        matrix = np.asarray(tpm, dtype=float)
+        if matrix.shape != (3, 3) or np.any(matrix < 0) or not np.allclose(matrix.sum(axis=1), 1.0, atol=1e-9):
+            raise ValueError(f"tpm: {np.asarray(tpm).tolist()} must be a 3 x 3 matrix of probabilities whose rows sum "
+                             f"to 1 (rows: from CV, Omega > 0, Omega < 0)")
+        if not (0.0 <= lw_h < 1.0):
+            raise ValueError(f"lw_h: {lw_h} must be in [0, 1) (0 = no regularisation)")
+        if chunk_runs is not None and not (isinstance(chunk_runs, int) and not isinstance(chunk_runs, bool)
+                                           and chunk_runs >= 1):
+            raise ValueError(f"chunk_runs: {chunk_runs!r} must be an integer >= 1 or null (automatic)")
+        if workers is not None and not (isinstance(workers, int) and not isinstance(workers, bool) and workers >= 1):
+            raise ValueError(f"workers: {workers!r} must be an integer >= 1 or null (one per processor)")
+        self.particles = particles
+        self.chunk_runs = chunk_runs
+        self.workers = workers
+        self.tpm = matrix
+        self.lw_h = float(lw_h)
+        self.auxiliary = bool(auxiliary)
+
+    def run(self, reports: BuoyReports) -> TrackEstimate:
+        """All runs, ``chunk_runs`` runs at a time: a chunk's particle arrays (a few MB) stay in the
+        processor's cache through a scan; results do not depend on the chunking (per-run random
+        streams)."""
+        started = _time.perf_counter()
+        R, K, _ = reports.z.shape
+        gens = reports.generators(f"particles:{self.name}")
+        workers = max(1, min(self.workers or os.cpu_count() or 1, R))
+        size = self.chunk_runs
+        if size is None:        # a whole number of chunks per worker, each at most 25 runs
+            count = workers * -(-R // (workers * 25))
+            size = -(-R // count)
+        chunks = [slice(r0, min(r0 + size, R)) for r0 in range(0, R, size)]
+        workers = min(workers, len(chunks))
+        if workers > 1:
+            # numpy releases the GIL inside its array loops, so chunks of runs filter in parallel
+            with ThreadPoolExecutor(max_workers=workers) as pool:
+                parts = list(pool.map(lambda c: self._run_chunk(reports, gens, c), chunks))
+        else:
+            parts = [self._run_chunk(reports, gens, c) for c in chunks]
+        extras = {name: np.concatenate([p[2][name] for p in parts]) for name in parts[0][2]}
+        return TrackEstimate(reports.time.copy(), np.concatenate([p[0] for p in parts]),
+                             np.concatenate([p[1] for p in parts]), extras, _time.perf_counter() - started)
+
+    def _run_chunk(self, all_reports: BuoyReports, all_gens, runs: slice):
+        reports = BuoyReports(all_reports.time, all_reports.z[runs], all_reports.observer, all_reports.std,
+                              all_reports.clutter_std, all_reports.clutter_probability,
+                              all_reports.prior_mean[runs], all_reports.prior_std, all_reports.seed)
+        gens = all_gens[runs]
+        R, K, _ = reports.z.shape
+        N = self.particles
+        likelihood = reports.likelihood()
+        target_part, buoy_part = likelihood.subset(slice(0, 4)), likelihood.subset(slice(4, 8))
+        log_tpm = np.log(np.maximum(self.tpm, 1e-300))
+
+        X = reports.prior_mean[:, None, :] + reports.prior_std * _stack(gens, lambda g: g.standard_normal((N, 20)))
+        modes = np.zeros((R, N), dtype=np.int64)                       # all particles start in CV
+        states = np.full((R, K, 20), np.nan)
+        covariances = np.full((R, K, 20, 20), np.nan)
+        mode_probability = np.full((R, K, 3), np.nan)
+        ess = np.full((R, K), np.nan)
+        states[:, 0], covariances[:, 0] = weighted_moments(X, np.full((R, N), 1.0 / N))
+        mode_probability[:, 0] = [1.0, 0.0, 0.0]
+        ess[:, 0] = N
+        observer = np.asarray(reports.observer, dtype=float)
+        run_index = np.arange(R)[:, None]
+        for k in range(1, K):
+            dt = float(reports.time[k] - reports.time[k - 1])
+            G = noise_gain(dt, self.noise_gain)
+            z = reports.z[:, k]
+            buoys = X[..., 4:].reshape(R, N, BUOYS, 4)
+            buoys_next = np.concatenate([buoys[..., :2] + dt * buoys[..., 2:], buoys[..., 2:]], axis=-1)
+            omega = turn_rates(X[..., 2:4], self.max_acceleration)                     # (R, N, 3)
+            if self.auxiliary:
+                # first stage (eq 16): likelihood of the noise-free predicted mean of every (particle, mode)
+                target_mean = predicted_positions(X[..., 0:4], self.max_acceleration, dt)     # (R, N, 3, 2)
+                first = (self._target_log_likelihood(target_mean, buoys_next[..., None, :, :2], z, target_part)
+                         + self._buoy_log_likelihood(buoys_next[..., :2], z, observer, buoy_part)[..., None])
+                log_lambda = log_tpm[modes] + first                                      # (R, N, 3)
+                offsets = _stack(gens, lambda g: g.random())
+                pick = systematic_resample(log_lambda.reshape(R, 3 * N), offsets, N)    # (R, N) cells
+                parent, new_mode = pick // 3, pick % 3
+                first_at_pick = np.take_along_axis(first.reshape(R, 3 * N), pick, axis=1)
+            else:
+                parent = np.broadcast_to(np.arange(N), (R, N))
+                u = _stack(gens, lambda g: g.random(N))
+                cumulative = np.cumsum(self.tpm[modes], axis=-1)
+                new_mode = np.minimum((u[..., None] > cumulative).sum(axis=-1), 2)
+                first_at_pick = 0.0
+            # propagation (eq 15) under each pair's mode, with process noise through Gamma
+            source = X[run_index, parent]                                                # (R, N, 20)
+            chosen_omega = np.take_along_axis(omega[run_index, parent], new_mode[..., None], axis=-1)[..., 0]
+            # float32 normals: half the generator time; they only scale small perturbations
+            noise = _stack(gens, lambda g: g.standard_normal((N, 5, 2), dtype=np.float32))
+            sigma = np.array([self.target_sigma] + [self.buoy_sigma] * BUOYS)[:, None]
+            increments = (noise * sigma) @ G.T                                          # (R, N, 5, 4)
+            X_new = np.empty_like(X)
+            X_new[..., 0:4] = coordinated_turn(source[..., 0:4], chosen_omega, dt) + increments[..., 0, :]
+            moved = buoys_next[run_index, parent] + increments[..., 1:, :]
+            X_new[..., 4:] = moved.reshape(R, N, 16)
+            # second stage (eq 17): p(z | x) / p(z | mu)
+            new_buoys = X_new[..., 4:].reshape(R, N, BUOYS, 4)[..., :2]
+            log_likelihood = (self._target_log_likelihood(X_new[..., :2], new_buoys, z, target_part)
+                              + self._buoy_log_likelihood(new_buoys, z, observer, buoy_part))
+            log_w = log_likelihood - first_at_pick
+            weights = normalise_log(log_w)
+            states[:, k], covariances[:, k] = weighted_moments(X_new, weights)
+            mode_probability[:, k] = np.stack([np.sum(weights * (new_mode == m), axis=1) for m in range(3)], -1)
+            ess[:, k] = 1.0 / np.sum(weights**2, axis=1)
+            # resample every scan (seed step 5), then regularise (spec 004)
+            offsets = _stack(gens, lambda g: g.random())
+            keep = systematic_resample(np.log(np.maximum(weights, 1e-300)), offsets, N)
+            X = X_new[run_index, keep]
+            modes = new_mode[run_index, keep]
+            if self.lw_h > 0:
+                X = liu_west(X, self.lw_h, _stack(gens, lambda g: g.standard_normal((N, 20), dtype=np.float32)))
+        return states, covariances, {"mode_probabilities": mode_probability, "ess": ess}
+
+    @staticmethod
+    def _target_log_likelihood(target_xy: np.ndarray, buoy_xy: np.ndarray, z: np.ndarray,
+                               part: BearingLikelihood) -> np.ndarray:
+        """Sum over the 4 target bearings; target_xy (..., 2), buoy_xy (..., 4, 2), z (R, 8).
+
+        In float32: bearings of differences of ~10 km positions keep ~1e-7 rad, far below the
+        1.5-15 deg noise, and numpy's float32 atan2/exp/log run about twice as fast."""
+        d = target_xy.astype(np.float32)[..., None, :] - buoy_xy.astype(np.float32)
+        predicted = np.arctan2(d[..., 0], d[..., 1])                                    # (..., 4)
+        zz = z[:, 0:4].astype(np.float32).reshape((z.shape[0],) + (1,) * (predicted.ndim - 2) + (4,))
+        return part.log(predicted, zz).sum(axis=-1, dtype=np.float64)
+
+    @staticmethod
+    def _buoy_log_likelihood(buoy_xy: np.ndarray, z: np.ndarray, observer: np.ndarray,
+                             part: BearingLikelihood) -> np.ndarray:
+        d = buoy_xy.astype(np.float32) - observer.astype(np.float32)
+        predicted = np.arctan2(d[..., 0], d[..., 1])                                    # (R, N, 4)
+        zz = z[:, 4:8].astype(np.float32).reshape((z.shape[0],) + (1,) * (predicted.ndim - 2) + (4,))
+        return part.log(predicted, zz).sum(axis=-1, dtype=np.float64)
+
+
+class BearingsEKF(_ModelParameters):
+    """EKF on the same 20 states with one CV target model (notes 6.4): Joseph update on the received
+    components; in clutter the moment-matched variance (1 - p_c) s^2 + p_c s_c^2 per component."""
+
+    def __init__(self, name: str = "EKF", max_acceleration: float = 0.0, target_sigma: float = 0.05,
+                 buoy_sigma: float = 0.0005, noise_gain: str = "standard") -> None:
+        super().__init__(name, max_acceleration, target_sigma, buoy_sigma, noise_gain)
+
+    def run(self, reports: BuoyReports) -> TrackEstimate:
+        started = _time.perf_counter()
+        R, K, _ = reports.z.shape
+        pc = reports.clutter_probability
+        variance = (1.0 - pc) * reports.std**2 + pc * reports.clutter_std**2                # (8,)
+        x = reports.prior_mean.copy()
+        P = np.broadcast_to(np.diag(reports.prior_std**2), (R, 20, 20)).copy()
+        states = np.full((R, K, 20), np.nan)
+        covariances = np.full((R, K, 20, 20), np.nan)
+        states[:, 0], covariances[:, 0] = x, P
+        F_block = cv_transition(1.0)
+        observer = np.asarray(reports.observer, dtype=float)
+        for k in range(1, K):
+            dt = float(reports.time[k] - reports.time[k - 1])
+            F_block = cv_transition(dt)
+            F = np.kron(np.eye(5), F_block)
+            x = x @ F.T
+            P = F @ P @ F.T + self._process_noise(dt)
+            z = reports.z[:, k]
+            H = bearing_jacobian(x, observer)                                              # (R, 8, 20)
+            residual = wrap(z - bearings(x, observer))
+            received = ~np.isnan(z)
+            # a missed component: zero row and a unit variance, so it changes nothing
+            H = np.where(received[..., None], H, 0.0)
+            residual = np.where(received, residual, 0.0)
+            Rm = np.broadcast_to(np.diag(variance), (R, 8, 8)) * received[:, None, :] * received[:, :, None]
+            Rm = Rm + np.eye(8) * (~received)[:, None, :]
+            PHt = P @ np.swapaxes(H, -1, -2)
+            S = H @ PHt + Rm
+            gain = np.swapaxes(np.linalg.solve(S, np.swapaxes(PHt, -1, -2)), -1, -2)
+            x = x + np.einsum("rij,rj->ri", gain, residual)
+            A = np.eye(20) - gain @ H
+            P = A @ P @ np.swapaxes(A, -1, -2) + gain @ Rm @ np.swapaxes(gain, -1, -2)
+            P = 0.5 * (P + np.swapaxes(P, -1, -2))
+            states[:, k], covariances[:, k] = x, P
+        return TrackEstimate(reports.time.copy(), states, covariances, {}, _time.perf_counter() - started)
+
+
+def bearing_jacobian(state: np.ndarray, observer: np.ndarray) -> np.ndarray:
+    """(R, 20) -> (R, 8, 20): d bearing / d state (notes 6.4)."""
+    R = state.shape[0]
+    H = np.zeros((R, 8, 20))
+    target = state[:, 0:2]
+    for i in range(BUOYS):
+        buoy = state[:, 4 + 4 * i:6 + 4 * i]
+        d = target - buoy
+        rho2 = d[:, 0] ** 2 + d[:, 1] ** 2
+        row = np.stack([d[:, 1] / rho2, -d[:, 0] / rho2], -1)
+        H[:, i, 0:2] = row
+        H[:, i, 4 + 4 * i:6 + 4 * i] = -row
+        d = buoy - observer
+        rho2 = d[:, 0] ** 2 + d[:, 1] ** 2
+        H[:, 4 + i, 4 + 4 * i:6 + 4 * i] = np.stack([d[:, 1] / rho2, -d[:, 0] / rho2], -1)
+    return H

@@ -1,0 +1,154 @@
+"""Track and evaluate stages of the sonobuoy study (spec 004, seed 004).
+
+The filters get the bearings (NaN where missed), the observer's position, the nominal and clutter
+noise, and a start identical for every filter (spec 004): prior mean = truth + N(0, P0) drawn here
+in its own seeded stage ("prior", per run), or for case 1B a fixed target prior centred on the
+field. Per-step metrics (step k is t = k T):
+
+- ``position_rmse`` / ``position_median_error``: the target's position error, RMS and median over runs;
+- ``buoy_position_rmse``: RMS over runs and the four buoys;
+- ``nees_position``: the target position NEES (2 dof);
+- ``ess`` (particle filters): mean effective sample size; ``mode_probability_cv/_ccw/_cw``: mean
+  over runs of the filter's mode probabilities (ccw: Omega > 0, the seed's r = 2; cw: Omega < 0, r = 3).
+
+The summary adds ``track_loss_rate`` (final position error above ``loss_threshold``),
+``final_position_rmse``, and ``peak_median_error`` within each of ``peak_windows`` (seconds).
+"""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+import numpy as np
+
+from filters.particle import STATE_NAMES, BuoyReports
+from pipeline import schemas
+from pipeline.data import Detections, Truth
+from pipeline.errors import ConfigError
+from pipeline.seeding import run_generators
+from pipeline.stages.evaluate import _quiet_nanmean
+
+UNITS = {"position_rmse": "m", "position_median_error": "m", "buoy_position_rmse": "m",
+         "nees_position": "1 (chi2 dof = 2)", "ess": "particles", "mode_probability_cv": "probability",
+         "mode_probability_ccw": "probability", "mode_probability_cw": "probability",
+         "track_loss_rate": "fraction of runs", "final_position_rmse": "m", "peak_median_error": "m"}
+MODE_NAMES = ("cv", "ccw", "cw")
+
+
+class SonobuoyStudy:
+    """Adapter of study 004.
+
+    Parameters
+    ----------
+    target_prior : "truth" (mean = truth + N(0, P0), the spec's default) or "field" (mean
+        ``field_target_mean``; case 1B: the target prior centred on the field)
+    target_std : P0's target standard deviations (x, y, vx, vy) [m, m/s]
+    buoy_std : P0's standard deviations of each buoy (x, y, vx, vy)
+    field_target_mean : the target prior mean for ``target_prior: field``
+    loss_threshold : a run whose final position error exceeds it has lost the track [m]
+    peak_windows : name -> [t0, t1] seconds; the summary reports the peak median error in each
+    """
+
+    estimate_table = "estimates"
+
+    def __init__(self, target_prior: str = "truth", target_std: Sequence[float] = (1000.0, 1000.0, 2.0, 2.0),
+                 buoy_std: Sequence[float] = (100.0, 100.0, 0.05, 0.05),
+                 field_target_mean: Sequence[float] = (0.0, 0.0, 0.0, 0.0), loss_threshold: float = 2000.0,
+                 peak_windows: dict | None = None) -> None:
+        if target_prior not in ("truth", "field"):
+            raise ValueError(f"target_prior: {target_prior!r} is not allowed; use 'truth' (truth + N(0, P0)) or "
+                             f"'field' (field_target_mean)")
+        for key, value in (("target_std", target_std), ("buoy_std", buoy_std), ("field_target_mean", field_target_mean)):
+            array = np.asarray(value, dtype=float)
+            if array.shape != (4,) or not np.all(np.isfinite(array)) or (key != "field_target_mean" and np.any(array <= 0)):
+                raise ValueError(f"{key}: {list(value)} must be 4 finite values (x, y, vx, vy)"
+                                 + ("" if key == "field_target_mean" else " > 0"))
+        if not (np.isfinite(loss_threshold) and loss_threshold > 0):
+            raise ValueError(f"loss_threshold: {loss_threshold} must be > 0 m")
+        self.target_prior = target_prior
+        self.target_std = np.asarray(target_std, dtype=float)
+        self.buoy_std = np.asarray(buoy_std, dtype=float)
+        self.field_target_mean = np.asarray(field_target_mean, dtype=float)
+        self.loss_threshold = float(loss_threshold)
+        self.peak_windows = {str(k): (float(v[0]), float(v[1])) for k, v in (peak_windows or {}).items()}
+        for name, (t0, t1) in self.peak_windows.items():
+            if not t0 <= t1:
+                raise ValueError(f"peak_windows.{name}: [{t0}, {t1}] must have t0 <= t1 (seconds)")
+
+    @property
+    def prior_std(self) -> np.ndarray:
+        return np.concatenate([self.target_std, np.tile(self.buoy_std, 4)])
+
+    def check(self, scenario, sensor, estimators: dict) -> None:
+        if not hasattr(sensor, "observer_position"):
+            raise ConfigError(f"sensors: {type(sensor).__name__} is not the sonobuoy bearing sensor; the sonobuoy "
+                              f"study needs one (e.g. sensors=sonobuoy_clean).")
+
+    def track_input(self, truth: Truth, detections: Detections, sensor, seed: int) -> BuoyReports:
+        R = truth.runs
+        start = truth.state[:, 0, 0]                                              # (R, 20)
+        draws = np.stack([g.standard_normal(20) for g in run_generators(seed, "prior", R)])
+        prior_mean = start + draws * self.prior_std
+        if self.target_prior == "field":
+            prior_mean[:, 0:4] = self.field_target_mean
+        return BuoyReports(detections.time, detections.z[..., 0], np.asarray(sensor.observer_position, dtype=float),
+                           np.asarray(sensor.nominal_std, dtype=float), np.asarray(sensor.clutter_std, dtype=float),
+                           float(sensor.clutter_probability), prior_mean, self.prior_std, int(seed))
+
+    @staticmethod
+    def estimate_to_frame(estimate):
+        return schemas.estimate_to_frame(estimate, STATE_NAMES, compact_covariance=True)
+
+    @staticmethod
+    def per_step_metrics(truth: Truth, estimate, sensor) -> dict[str, np.ndarray]:
+        true = truth.state[:, :, 0]
+        error = np.linalg.norm(estimate.state[..., 0:2] - true[..., 0:2], axis=-1)          # (R, K)
+        buoy_error = (estimate.state[..., 4:] - true[..., 4:]).reshape(error.shape + (4, 4))[..., 0:2]
+        out = {}
+        with np.errstate(invalid="ignore"), _quiet_nanmean():
+            out["position_rmse"] = np.sqrt(np.nanmean(error**2, axis=0))
+            out["position_median_error"] = np.nanmedian(error, axis=0)
+            out["buoy_position_rmse"] = np.sqrt(np.nanmean(np.sum(buoy_error**2, axis=-1).mean(axis=-1), axis=0))
+            e = estimate.state[..., 0:2] - true[..., 0:2]
+            P = estimate.covariance[..., 0:2, 0:2]
+            ok = np.isfinite(e).all(-1) & np.isfinite(P).all((-1, -2))
+            P = np.where(ok[..., None, None], P, np.eye(2))
+            e = np.where(ok[..., None], e, 0.0)
+            nees = np.einsum("rki,rki->rk", e, np.linalg.solve(P, e[..., None])[..., 0])
+            out["nees_position"] = np.nanmean(np.where(ok, nees, np.nan), axis=0)
+            extras = estimate.extras
+            if "ess" in extras:
+                out["ess"] = np.nanmean(extras["ess"], axis=0)
+            if "mode_probabilities" in extras:
+                for m, name in enumerate(MODE_NAMES):
+                    out[f"mode_probability_{name}"] = np.nanmean(extras["mode_probabilities"][..., m], axis=0)
+        return out
+
+    @staticmethod
+    def metric_units(names) -> dict[str, str]:
+        return {n: UNITS[n] for n in names if n in UNITS}
+
+    def extra_summary(self, truth: Truth, estimates: dict, display: dict, runs: int, reference: str | None,
+                      sensor, per_variant: dict) -> list[dict]:
+        rows = []
+
+        def add(key, metric, window, value):
+            rows.append({"variant": display[key], "variant_key": key, "metric": metric, "window": window,
+                         "value": None if value is None else float(value), "unit": UNITS[metric], "n_runs": runs})
+
+        time = truth.time
+        for key, est in estimates.items():
+            final = np.linalg.norm(est.state[:, -1, 0:2] - truth.state[:, -1, 0, 0:2], axis=-1)
+            add(key, "track_loss_rate", f"final error > {self.loss_threshold:g} m",
+                np.mean(~(final <= self.loss_threshold)))
+            add(key, "final_position_rmse", "final", np.sqrt(np.mean(final**2)))
+            median = per_variant[key][1]["position_median_error"]
+            for name, (t0, t1) in self.peak_windows.items():
+                inside = (time >= t0) & (time <= t1)
+                add(key, "peak_median_error", name, np.nanmax(median[inside]) if inside.any() else None)
+        return rows
+
+    @staticmethod
+    def record(path, **kwargs) -> None:
+        from pipeline.recording_sonobuoy import write_sonobuoy_recording
+        write_sonobuoy_recording(path, **kwargs)
