@@ -235,6 +235,7 @@ class BuoyReports:
     prior_mean: np.ndarray
     prior_std: np.ndarray
     seed: int = 0
+    run_ids: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         R, K = self.z.shape[:2]
@@ -248,9 +249,18 @@ class BuoyReports:
         return BearingLikelihood(self.std, self.clutter_std, self.clutter_probability)
 
     def generators(self, stream: str) -> list[np.random.Generator]:
+        """One generator per run, keyed by the run's id (``run_ids``, default 0..R-1): a subset of runs
+        filtered again (e.g. run 0 alone for a recording) draws exactly the same numbers."""
         key = zlib.crc32(stream.encode())
-        return [np.random.default_rng(np.random.SeedSequence(entropy=self.seed, spawn_key=(key, r)))
-                for r in range(self.z.shape[0])]
+        ids = range(self.z.shape[0]) if self.run_ids is None else [int(r) for r in self.run_ids]
+        return [np.random.default_rng(np.random.SeedSequence(entropy=self.seed, spawn_key=(key, r))) for r in ids]
+
+    def select(self, runs: Sequence[int]) -> "BuoyReports":
+        """The same reports for a subset of runs, keeping their ids (so their random numbers)."""
+        index = np.asarray(runs, dtype=int)
+        ids = index if self.run_ids is None else np.asarray(self.run_ids)[index]
+        return BuoyReports(self.time, self.z[index], self.observer, self.std, self.clutter_std,
+                           self.clutter_probability, self.prior_mean[index], self.prior_std, self.seed, ids)
 
 
 def _stack(generators, draw) -> np.ndarray:
@@ -302,13 +312,16 @@ class MultipleModelParticleFilter(_ModelParameters):
     chunk_runs : runs filtered together (memory locality and threads; results do not depend on it);
         None: a whole number of chunks per worker, at most 25 runs each
     workers : threads filtering chunks in parallel (None: one per processor); results do not depend on it
+    snapshot_particles : keep this many particles per scan (evenly spaced in the resampled,
+        regularised cloud) as extras "particles" (R, K, P, 20) float32 and "particle_modes" int8,
+        for a recording of a few runs; 0 (default) keeps none
     """
 
     def __init__(self, name: str = "AMMPF", particles: int = 1000, max_acceleration: float = 0.01,
                  target_sigma: float = 0.05, buoy_sigma: float = 0.0005,
                  tpm: Sequence[Sequence[float]] = ((0.95, 0.025, 0.025), (0.025, 0.95, 0.025), (0.025, 0.025, 0.95)),
                  lw_h: float = 0.3, noise_gain: str = "standard", auxiliary: bool = True, chunk_runs: int | None = None,
-                 workers: int | None = None) -> None:
+                 workers: int | None = None, snapshot_particles: int = 0) -> None:
         super().__init__(name, max_acceleration, target_sigma, buoy_sigma, noise_gain)
         if not (isinstance(particles, int) and not isinstance(particles, bool) and particles >= 10):
             raise ValueError(f"particles: {particles!r} must be an integer >= 10")
@@ -323,6 +336,9 @@ class MultipleModelParticleFilter(_ModelParameters):
             raise ValueError(f"chunk_runs: {chunk_runs!r} must be an integer >= 1 or null (automatic)")
         if workers is not None and not (isinstance(workers, int) and not isinstance(workers, bool) and workers >= 1):
             raise ValueError(f"workers: {workers!r} must be an integer >= 1 or null (one per processor)")
+        if not (isinstance(snapshot_particles, int) and 0 <= snapshot_particles <= particles):
+            raise ValueError(f"snapshot_particles: {snapshot_particles!r} must be an integer in [0, particles]")
+        self.snapshot_particles = snapshot_particles
         self.particles = particles
         self.chunk_runs = chunk_runs
         self.workers = workers
@@ -355,9 +371,7 @@ class MultipleModelParticleFilter(_ModelParameters):
                              np.concatenate([p[1] for p in parts]), extras, _time.perf_counter() - started)
 
     def _run_chunk(self, all_reports: BuoyReports, all_gens, runs: slice):
-        reports = BuoyReports(all_reports.time, all_reports.z[runs], all_reports.observer, all_reports.std,
-                              all_reports.clutter_std, all_reports.clutter_probability,
-                              all_reports.prior_mean[runs], all_reports.prior_std, all_reports.seed)
+        reports = all_reports.select(range(runs.start, runs.stop))
         gens = all_gens[runs]
         R, K, _ = reports.z.shape
         N = self.particles
@@ -374,6 +388,12 @@ class MultipleModelParticleFilter(_ModelParameters):
         states[:, 0], covariances[:, 0] = weighted_moments(X, np.full((R, N), 1.0 / N))
         mode_probability[:, 0] = [1.0, 0.0, 0.0]
         ess[:, 0] = N
+        P = self.snapshot_particles
+        if P:
+            spaced = np.linspace(0, N - 1, P).astype(np.int64)
+            cloud = np.full((R, K, P, 20), np.nan, dtype=np.float32)
+            cloud_modes = np.full((R, K, P), -1, dtype=np.int8)
+            cloud[:, 0], cloud_modes[:, 0] = X[:, spaced], 0
         observer = np.asarray(reports.observer, dtype=float)
         run_index = np.arange(R)[:, None]
         for k in range(1, K):
@@ -426,7 +446,12 @@ class MultipleModelParticleFilter(_ModelParameters):
             modes = new_mode[run_index, keep]
             if self.lw_h > 0:
                 X = liu_west(X, self.lw_h, _stack(gens, lambda g: g.standard_normal((N, 20), dtype=np.float32)))
-        return states, covariances, {"mode_probabilities": mode_probability, "ess": ess}
+            if P:
+                cloud[:, k], cloud_modes[:, k] = X[:, spaced], modes[:, spaced]
+        extras = {"mode_probabilities": mode_probability, "ess": ess}
+        if P:
+            extras.update(particles=cloud, particle_modes=cloud_modes)
+        return states, covariances, extras
 
     @staticmethod
     def _target_log_likelihood(target_xy: np.ndarray, buoy_xy: np.ndarray, z: np.ndarray,
