@@ -372,106 +372,149 @@ class MultipleModelParticleFilter(_ModelParameters):
 
     def _run_chunk(self, all_reports: BuoyReports, all_gens, runs: slice):
         reports = all_reports.select(range(runs.start, runs.stop))
-        gens = all_gens[runs]
-        R, K, _ = reports.z.shape
-        N = self.particles
-        likelihood = reports.likelihood()
-        target_part, buoy_part = likelihood.subset(slice(0, 4)), likelihood.subset(slice(4, 8))
-        log_tpm = np.log(np.maximum(self.tpm, 1e-300))
+        model = SonobuoyModel(self.max_acceleration, self.target_sigma, self.buoy_sigma, self.noise_gain,
+                              reports.likelihood(), np.asarray(reports.observer, dtype=float))
+        return filter_jump_markov(model, self.tpm, reports.time, reports.z, reports.prior_mean, reports.prior_std,
+                                  all_gens[runs], self.particles, self.auxiliary, self.lw_h, self.snapshot_particles)
 
-        X = reports.prior_mean[:, None, :] + reports.prior_std * _stack(gens, lambda g: g.standard_normal((N, 20)))
-        modes = np.zeros((R, N), dtype=np.int64)                       # all particles start in CV
-        states = np.full((R, K, 20), np.nan)
-        covariances = np.full((R, K, 20, 20), np.nan)
-        mode_probability = np.full((R, K, 3), np.nan)
-        ess = np.full((R, K), np.nan)
-        states[:, 0], covariances[:, 0] = weighted_moments(X, np.full((R, N), 1.0 / N))
-        mode_probability[:, 0] = [1.0, 0.0, 0.0]
-        ess[:, 0] = N
-        P = self.snapshot_particles
-        if P:
-            spaced = np.linspace(0, N - 1, P).astype(np.int64)
-            cloud = np.full((R, K, P, 20), np.nan, dtype=np.float32)
-            cloud_modes = np.full((R, K, P), -1, dtype=np.int8)
-            cloud[:, 0], cloud_modes[:, 0] = X[:, spaced], 0
-        observer = np.asarray(reports.observer, dtype=float)
+
+class SonobuoyModel:
+    """Seed 004's jump-Markov model for ``filter_jump_markov``: 20 states, 3 target modes (CV,
+    Omega > 0, Omega < 0), process noise (target 2 + 4 buoys x 2 accelerations) through Gamma, the
+    8-bearing likelihood. The likelihoods run in float32 (see ``_target_log_likelihood``)."""
+
+    modes = 3
+    state_size = 20
+    noise_shape = (5, 2)
+
+    def __init__(self, max_acceleration: float, target_sigma: float, buoy_sigma: float, gain: str,
+                 likelihood: BearingLikelihood, observer: np.ndarray) -> None:
+        self.max_acceleration = max_acceleration
+        self.sigma = np.array([target_sigma] + [buoy_sigma] * BUOYS)[:, None]
+        self.gain = gain
+        self.target_part, self.buoy_part = likelihood.subset(slice(0, 4)), likelihood.subset(slice(4, 8))
+        self.observer = observer
+
+    def first_stage(self, X: np.ndarray, z: np.ndarray, dt: float) -> tuple[np.ndarray, dict]:
+        """log p(z | mu(i, m)) (R, N, 3) of the noise-free predicted means (eq 16), and what the
+        propagation re-uses (the buoys' predicted states, the turn rates)."""
+        R, N = X.shape[:2]
+        buoys = X[..., 4:].reshape(R, N, BUOYS, 4)
+        buoys_next = np.concatenate([buoys[..., :2] + dt * buoys[..., 2:], buoys[..., 2:]], axis=-1)
+        target_mean = predicted_positions(X[..., 0:4], self.max_acceleration, dt)            # (R, N, 3, 2)
+        log_likelihood = (_target_log_likelihood(target_mean, buoys_next[..., None, :, :2], z, self.target_part)
+                          + _buoy_log_likelihood(buoys_next[..., :2], z, self.observer, self.buoy_part)[..., None])
+        return log_likelihood, {"buoys_next": buoys_next}
+
+    def propagate(self, X: np.ndarray, parent: np.ndarray, mode: np.ndarray, noise: np.ndarray, dt: float,
+                  context: dict | None) -> np.ndarray:
+        """Eq 15: each parent under its drawn mode, plus process noise (noise (R, N, 5, 2) standard)."""
+        R, N = parent.shape
         run_index = np.arange(R)[:, None]
-        for k in range(1, K):
-            dt = float(reports.time[k] - reports.time[k - 1])
-            G = noise_gain(dt, self.noise_gain)
-            z = reports.z[:, k]
-            buoys = X[..., 4:].reshape(R, N, BUOYS, 4)
+        source = X[run_index, parent]
+        omega = np.take_along_axis(turn_rates(source[..., 2:4], self.max_acceleration), mode[..., None], axis=-1)[..., 0]
+        increments = (noise * self.sigma) @ noise_gain(dt, self.gain).T                        # (R, N, 5, 4)
+        if context is not None:
+            buoys_next = context["buoys_next"][run_index, parent]
+        else:
+            buoys = source[..., 4:].reshape(R, N, BUOYS, 4)
             buoys_next = np.concatenate([buoys[..., :2] + dt * buoys[..., 2:], buoys[..., 2:]], axis=-1)
-            omega = turn_rates(X[..., 2:4], self.max_acceleration)                     # (R, N, 3)
-            if self.auxiliary:
-                # first stage (eq 16): likelihood of the noise-free predicted mean of every (particle, mode)
-                target_mean = predicted_positions(X[..., 0:4], self.max_acceleration, dt)     # (R, N, 3, 2)
-                first = (self._target_log_likelihood(target_mean, buoys_next[..., None, :, :2], z, target_part)
-                         + self._buoy_log_likelihood(buoys_next[..., :2], z, observer, buoy_part)[..., None])
-                log_lambda = log_tpm[modes] + first                                      # (R, N, 3)
-                offsets = _stack(gens, lambda g: g.random())
-                pick = systematic_resample(log_lambda.reshape(R, 3 * N), offsets, N)    # (R, N) cells
-                parent, new_mode = pick // 3, pick % 3
-                first_at_pick = np.take_along_axis(first.reshape(R, 3 * N), pick, axis=1)
-            else:
-                parent = np.broadcast_to(np.arange(N), (R, N))
-                u = _stack(gens, lambda g: g.random(N))
-                cumulative = np.cumsum(self.tpm[modes], axis=-1)
-                new_mode = np.minimum((u[..., None] > cumulative).sum(axis=-1), 2)
-                first_at_pick = 0.0
-            # propagation (eq 15) under each pair's mode, with process noise through Gamma
-            source = X[run_index, parent]                                                # (R, N, 20)
-            chosen_omega = np.take_along_axis(omega[run_index, parent], new_mode[..., None], axis=-1)[..., 0]
-            # float32 normals: half the generator time; they only scale small perturbations
-            noise = _stack(gens, lambda g: g.standard_normal((N, 5, 2), dtype=np.float32))
-            sigma = np.array([self.target_sigma] + [self.buoy_sigma] * BUOYS)[:, None]
-            increments = (noise * sigma) @ G.T                                          # (R, N, 5, 4)
-            X_new = np.empty_like(X)
-            X_new[..., 0:4] = coordinated_turn(source[..., 0:4], chosen_omega, dt) + increments[..., 0, :]
-            moved = buoys_next[run_index, parent] + increments[..., 1:, :]
-            X_new[..., 4:] = moved.reshape(R, N, 16)
-            # second stage (eq 17): p(z | x) / p(z | mu)
-            new_buoys = X_new[..., 4:].reshape(R, N, BUOYS, 4)[..., :2]
-            log_likelihood = (self._target_log_likelihood(X_new[..., :2], new_buoys, z, target_part)
-                              + self._buoy_log_likelihood(new_buoys, z, observer, buoy_part))
-            log_w = log_likelihood - first_at_pick
-            weights = normalise_log(log_w)
-            states[:, k], covariances[:, k] = weighted_moments(X_new, weights)
-            mode_probability[:, k] = np.stack([np.sum(weights * (new_mode == m), axis=1) for m in range(3)], -1)
-            ess[:, k] = 1.0 / np.sum(weights**2, axis=1)
-            # resample every scan (seed step 5), then regularise (spec 004)
-            offsets = _stack(gens, lambda g: g.random())
-            keep = systematic_resample(np.log(np.maximum(weights, 1e-300)), offsets, N)
-            X = X_new[run_index, keep]
-            modes = new_mode[run_index, keep]
-            if self.lw_h > 0:
-                X = liu_west(X, self.lw_h, _stack(gens, lambda g: g.standard_normal((N, 20), dtype=np.float32)))
-            if P:
-                cloud[:, k], cloud_modes[:, k] = X[:, spaced], modes[:, spaced]
-        extras = {"mode_probabilities": mode_probability, "ess": ess}
+        X_new = np.empty_like(X)
+        X_new[..., 0:4] = coordinated_turn(source[..., 0:4], omega, dt) + increments[..., 0, :]
+        X_new[..., 4:] = (buoys_next + increments[..., 1:, :]).reshape(R, N, 16)
+        return X_new
+
+    def log_likelihood(self, X: np.ndarray, z: np.ndarray) -> np.ndarray:
+        R, N = X.shape[:2]
+        buoys = X[..., 4:].reshape(R, N, BUOYS, 4)[..., :2]
+        return (_target_log_likelihood(X[..., :2], buoys, z, self.target_part)
+                + _buoy_log_likelihood(buoys, z, self.observer, self.buoy_part))
+
+
+def _target_log_likelihood(target_xy: np.ndarray, buoy_xy: np.ndarray, z: np.ndarray,
+                           part: BearingLikelihood) -> np.ndarray:
+    """Sum over the 4 target bearings; target_xy (..., 2), buoy_xy (..., 4, 2), z (R, 8).
+
+    In float32: bearings of differences of ~10 km positions keep ~1e-7 rad, far below the
+    1.5-15 deg noise, and numpy's float32 atan2/exp/log run about twice as fast."""
+    d = target_xy.astype(np.float32)[..., None, :] - buoy_xy.astype(np.float32)
+    predicted = np.arctan2(d[..., 0], d[..., 1])                                        # (..., 4)
+    zz = z[:, 0:4].astype(np.float32).reshape((z.shape[0],) + (1,) * (predicted.ndim - 2) + (4,))
+    return part.log(predicted, zz).sum(axis=-1, dtype=np.float64)
+
+
+def _buoy_log_likelihood(buoy_xy: np.ndarray, z: np.ndarray, observer: np.ndarray,
+                         part: BearingLikelihood) -> np.ndarray:
+    d = buoy_xy.astype(np.float32) - observer.astype(np.float32)
+    predicted = np.arctan2(d[..., 0], d[..., 1])                                        # (R, N, 4)
+    zz = z[:, 4:8].astype(np.float32).reshape((z.shape[0],) + (1,) * (predicted.ndim - 2) + (4,))
+    return part.log(predicted, zz).sum(axis=-1, dtype=np.float64)
+
+
+def filter_jump_markov(model, tpm: np.ndarray, time: np.ndarray, z: np.ndarray, prior_mean: np.ndarray,
+                       prior_std: np.ndarray, gens, particles: int, auxiliary: bool = True, lw_h: float = 0.0,
+                       snapshot_particles: int = 0):
+    """The multiple-model particle filter over scans 1..K-1, batched over runs (R) and particles.
+
+    ``model`` supplies ``modes``, ``state_size``, ``noise_shape``, ``first_stage(X, z, dt)``,
+    ``propagate(X, parent, mode, noise, dt, context)`` and ``log_likelihood(X, z)``; ``gens`` one
+    random generator per run. Auxiliary (AMMPF, seed eqs 15-17): first-stage weights over every
+    (particle, mode) pair, joint systematic resampling of (parent, mode), propagation, second-stage
+    weights p(z|x)/p(z|mu). Otherwise the bootstrap SIR-MM (mode from the transition matrix).
+    Then output moments, resample every scan (seed step 5) and regularise (Liu-West, ``lw_h``).
+    Returns states (R, K, n), covariances, extras (mode_probabilities, ess[, particles, particle_modes]).
+    """
+    R, K = z.shape[:2]
+    N, M, n = particles, model.modes, model.state_size
+    log_tpm = np.log(np.maximum(tpm, 1e-300))
+    X = prior_mean[:, None, :] + prior_std * _stack(gens, lambda g: g.standard_normal((N, n)))
+    modes = np.zeros((R, N), dtype=np.int64)                                # every particle starts in mode 0
+    states = np.full((R, K, n), np.nan)
+    covariances = np.full((R, K, n, n), np.nan)
+    mode_probability = np.full((R, K, M), np.nan)
+    ess = np.full((R, K), np.nan)
+    states[:, 0], covariances[:, 0] = weighted_moments(X, np.full((R, N), 1.0 / N))
+    mode_probability[:, 0] = np.eye(M)[0]
+    ess[:, 0] = N
+    P = snapshot_particles
+    if P:
+        spaced = np.linspace(0, N - 1, P).astype(np.int64)
+        cloud = np.full((R, K, P, n), np.nan, dtype=np.float32)
+        cloud_modes = np.full((R, K, P), -1, dtype=np.int8)
+        cloud[:, 0], cloud_modes[:, 0] = X[:, spaced], 0
+    run_index = np.arange(R)[:, None]
+    for k in range(1, K):
+        dt = float(time[k] - time[k - 1])
+        zk = z[:, k]
+        if auxiliary:
+            first, context = model.first_stage(X, zk, dt)                          # (R, N, M), eq 16
+            log_lambda = log_tpm[modes] + first                                     # weights are uniform after resampling
+            pick = systematic_resample(log_lambda.reshape(R, M * N), _stack(gens, lambda g: g.random()), N)
+            parent, new_mode = pick // M, pick % M
+            first_at_pick = np.take_along_axis(first.reshape(R, M * N), pick, axis=1)
+        else:
+            parent = np.broadcast_to(np.arange(N), (R, N))
+            u = _stack(gens, lambda g: g.random(N))
+            new_mode = np.minimum((u[..., None] > np.cumsum(tpm[modes], axis=-1)).sum(axis=-1), M - 1)
+            first_at_pick, context = 0.0, None
+        # float32 normals: half the generator time; they only scale small perturbations
+        noise = _stack(gens, lambda g: g.standard_normal((N,) + tuple(model.noise_shape), dtype=np.float32))
+        X_new = model.propagate(X, parent, new_mode, noise, dt, context)              # eq 15
+        weights = normalise_log(model.log_likelihood(X_new, zk) - first_at_pick)       # eq 17
+        states[:, k], covariances[:, k] = weighted_moments(X_new, weights)
+        mode_probability[:, k] = np.stack([np.sum(weights * (new_mode == m), axis=1) for m in range(M)], -1)
+        ess[:, k] = 1.0 / np.sum(weights**2, axis=1)
+        keep = systematic_resample(np.log(np.maximum(weights, 1e-300)), _stack(gens, lambda g: g.random()), N)
+        X = X_new[run_index, keep]
+        modes = new_mode[run_index, keep]
+        if lw_h > 0:
+            X = liu_west(X, lw_h, _stack(gens, lambda g: g.standard_normal((N, n), dtype=np.float32)))
         if P:
-            extras.update(particles=cloud, particle_modes=cloud_modes)
-        return states, covariances, extras
-
-    @staticmethod
-    def _target_log_likelihood(target_xy: np.ndarray, buoy_xy: np.ndarray, z: np.ndarray,
-                               part: BearingLikelihood) -> np.ndarray:
-        """Sum over the 4 target bearings; target_xy (..., 2), buoy_xy (..., 4, 2), z (R, 8).
-
-        In float32: bearings of differences of ~10 km positions keep ~1e-7 rad, far below the
-        1.5-15 deg noise, and numpy's float32 atan2/exp/log run about twice as fast."""
-        d = target_xy.astype(np.float32)[..., None, :] - buoy_xy.astype(np.float32)
-        predicted = np.arctan2(d[..., 0], d[..., 1])                                    # (..., 4)
-        zz = z[:, 0:4].astype(np.float32).reshape((z.shape[0],) + (1,) * (predicted.ndim - 2) + (4,))
-        return part.log(predicted, zz).sum(axis=-1, dtype=np.float64)
-
-    @staticmethod
-    def _buoy_log_likelihood(buoy_xy: np.ndarray, z: np.ndarray, observer: np.ndarray,
-                             part: BearingLikelihood) -> np.ndarray:
-        d = buoy_xy.astype(np.float32) - observer.astype(np.float32)
-        predicted = np.arctan2(d[..., 0], d[..., 1])                                    # (R, N, 4)
-        zz = z[:, 4:8].astype(np.float32).reshape((z.shape[0],) + (1,) * (predicted.ndim - 2) + (4,))
-        return part.log(predicted, zz).sum(axis=-1, dtype=np.float64)
+            cloud[:, k], cloud_modes[:, k] = X[:, spaced], modes[:, spaced]
+    extras = {"mode_probabilities": mode_probability, "ess": ess}
+    if P:
+        extras.update(particles=cloud, particle_modes=cloud_modes)
+    return states, covariances, extras
 
 
 class BearingsEKF(_ModelParameters):
