@@ -269,7 +269,8 @@ def run_experiment(cfg: DictConfig, ctx: RunContext) -> RunOutcome:
             study.record(ctx.run_dir / "recording.rrd", experiment=experiment, truth=truth, detections=detections,
                          estimates=estimates, display_names=display, metrics=metrics, record_runs=record_runs,
                          sensor=sensor, config_text=OmegaConf.to_yaml(cfg, resolve=True),
-                         description=str(cfg.get("description", "")))
+                         description=str(cfg.get("description", "")),
+                         context={"estimators": estimators, "track_input": track_input, "seed": seed})
         else:
             _record_single_target(cfg, ctx, experiment, truth, detections, estimates, display, metrics, record_runs,
                                   sensor)

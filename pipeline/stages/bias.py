@@ -123,7 +123,7 @@ class BiasRegistrationStudy:
 
     # ---- record ----------------------------------------------------------------------------
     @staticmethod
-    def record(path, **kwargs) -> None:
+    def record(path, context: dict | None = None, **kwargs) -> None:
         from pipeline.recording_bias import write_bias_recording
         write_bias_recording(path, **kwargs)
 

@@ -82,7 +82,7 @@ class SonarStudy:
         return {n: UNITS[n] for n in names if n in UNITS}
 
     @staticmethod
-    def record(path, **kwargs) -> None:
+    def record(path, context: dict | None = None, **kwargs) -> None:
         from pipeline.recording_sonar import write_sonar_recording
         write_sonar_recording(path, **kwargs)
 

@@ -17,11 +17,12 @@ The summary adds ``track_loss_rate`` (final position error above ``loss_threshol
 
 from __future__ import annotations
 
+import copy
 from typing import Sequence
 
 import numpy as np
 
-from filters.particle import STATE_NAMES, BuoyReports
+from filters.particle import STATE_NAMES, BuoyReports, MultipleModelParticleFilter
 from pipeline import schemas
 from pipeline.data import Detections, Truth
 from pipeline.errors import ConfigError
@@ -149,6 +150,26 @@ class SonobuoyStudy:
         return rows
 
     @staticmethod
-    def record(path, **kwargs) -> None:
+    def record(path, context: dict | None = None, cloud_particles: int = 200, **kwargs) -> None:
+        """The recording, with each particle filter's cloud for the recorded runs: those runs are
+        filtered again alone with snapshots on (per-run random streams: the same particles as in the
+        Monte Carlo batch, checked), so the estimates tables never carry clouds."""
+        from dataclasses import replace
+
         from pipeline.recording_sonobuoy import write_sonobuoy_recording
-        write_sonobuoy_recording(path, **kwargs)
+        estimates = dict(kwargs.pop("estimates"))
+        runs = list(kwargs["record_runs"])
+        if context is not None:
+            reports = context["track_input"].select(runs)
+            for key, estimator in context["estimators"].items():
+                if not isinstance(estimator, MultipleModelParticleFilter) or key not in estimates:
+                    continue
+                again = copy.copy(estimator)
+                again.snapshot_particles = min(cloud_particles, estimator.particles)
+                snap = again.run(reports)
+                if not np.array_equal(snap.state, estimates[key].state[runs]):
+                    raise RuntimeError(f"filters.{key}: re-filtering runs {runs} alone did not reproduce the batch")
+                extras = {**estimates[key].extras, "particles": snap.extras["particles"],
+                          "particle_modes": snap.extras["particle_modes"]}
+                estimates[key] = replace(estimates[key], extras=extras)
+        write_sonobuoy_recording(path, estimates=estimates, **kwargs)
