@@ -139,14 +139,15 @@ class BearingLikelihood:
     def log(self, predicted: np.ndarray, z: np.ndarray) -> np.ndarray:
         """predicted (..., C) bearings of the components in z's last axis; z broadcastable, NaN missed.
 
-        The mixture is summed as densities (two exps and a log, cheaper than logaddexp): the clutter
-        component keeps it above ~1e-282 for any residual, so it cannot underflow to 0."""
+        The mixture is summed as densities around the clutter term (one exp and a log, cheaper than
+        logaddexp); the clutter density is the wider one, so nothing underflows."""
         missed = np.isnan(z)
         e = wrap(np.where(missed, 0.0, z) - predicted)
         e2 = e * e
         if self.clutter_probability > 0:
-            value = np.log(self._nominal_scale * np.exp(e2 * self._nominal_factor)
-                           + self._clutter_scale * np.exp(e2 * self._clutter_factor))
+            # log(a e^{f1 e2} + b e^{f2 e2}) = f2 e2 + log(b + a e^{(f1 - f2) e2}): one exp, exact
+            value = e2 * self._clutter_factor + np.log(
+                self._clutter_scale + self._nominal_scale * np.exp(e2 * (self._nominal_factor - self._clutter_factor)))
         else:
             value = e2 * self._nominal_factor + self._nominal_log_scale
         return np.where(missed, 0.0, value)
@@ -210,7 +211,12 @@ def liu_west(particles: np.ndarray, h: float, normals: np.ndarray) -> np.ndarray
     covariance = covariance + np.eye(n) * (1e-9 * scale)[:, None, :]
     L = np.linalg.cholesky(covariance)
     a = np.sqrt(1.0 - h * h)
-    return a * particles + (1.0 - a) * mean[:, None, :] + h * (normals @ np.swapaxes(L, -1, -2))
+    # the jitter in the normals' dtype (float32 from the filters: it only perturbs), added once
+    jitter = normals @ np.swapaxes(h * L, -1, -2).astype(normals.dtype)
+    jitter += ((1.0 - a) * mean)[:, None, :].astype(normals.dtype)
+    out = a * particles
+    out += jitter
+    return out
 
 
 # --------------------------------------------------------------------------------------------
@@ -402,7 +408,9 @@ class SonobuoyModel:
         buoys = X[..., 4:].reshape(R, N, BUOYS, 4)
         buoys_next = np.concatenate([buoys[..., :2] + dt * buoys[..., 2:], buoys[..., 2:]], axis=-1)
         target_mean = predicted_positions(X[..., 0:4], self.max_acceleration, dt)            # (R, N, 3, 2)
-        log_likelihood = (_target_log_likelihood(target_mean, buoys_next[..., None, :, :2], z, self.target_part)
+        predicted = mode_bearings(target_mean, buoys_next[..., :2])                           # (R, N, 3, 4)
+        zz = z[:, None, None, 0:4].astype(np.float32)
+        log_likelihood = (self.target_part.log(predicted, zz).sum(axis=-1, dtype=np.float64)
                           + _buoy_log_likelihood(buoys_next[..., :2], z, self.observer, self.buoy_part)[..., None])
         return log_likelihood, {"buoys_next": buoys_next}
 
@@ -429,6 +437,21 @@ class SonobuoyModel:
         buoys = X[..., 4:].reshape(R, N, BUOYS, 4)[..., :2]
         return (_target_log_likelihood(X[..., :2], buoys, z, self.target_part)
                 + _buoy_log_likelihood(buoys, z, self.observer, self.buoy_part))
+
+
+def mode_bearings(target_mean: np.ndarray, buoy_xy: np.ndarray) -> np.ndarray:
+    """Bearings (float32, (..., 3, 4)) of the three modes' predicted target positions (..., 3, 2)
+    from the buoys (..., 4, 2). The turn modes' positions differ from the CV one by at most
+    a_m T^2 / 2 (0.125 m for case 2), so their bearings are the CV bearing plus the first-order
+    change (d_y Delta_x - d_x Delta_y) / rho^2: off by (Delta / rho)^2 (< 1e-6 rad beyond 125 m
+    from a buoy), far below the 7 deg noise, with one atan2 per buoy instead of three."""
+    cv = target_mean[..., 0, :].astype(np.float32)
+    d = cv[..., None, :] - buoy_xy.astype(np.float32)                                  # (..., 4, 2)
+    base = np.arctan2(d[..., 0], d[..., 1])
+    rho2 = d[..., 0] * d[..., 0] + d[..., 1] * d[..., 1]
+    shift = (target_mean[..., 1:, :] - target_mean[..., :1, :]).astype(np.float32)      # (..., 2, 2)
+    change = (d[..., None, :, 1] * shift[..., :, None, 0] - d[..., None, :, 0] * shift[..., :, None, 1]) / rho2[..., None, :]
+    return np.concatenate([base[..., None, :], base[..., None, :] + change], axis=-2)
 
 
 def _target_log_likelihood(target_xy: np.ndarray, buoy_xy: np.ndarray, z: np.ndarray,

@@ -10,7 +10,7 @@ import pytest
 from filters.kalman import kalman_filter
 from filters.particle import (
     BearingLikelihood, BearingsEKF, BuoyReports, MultipleModelParticleFilter, bearing_jacobian, bearings,
-    coordinated_turn, filter_jump_markov, liu_west, predicted_positions, systematic_resample, turn_rates,
+    coordinated_turn, filter_jump_markov, liu_west, mode_bearings, predicted_positions, systematic_resample, turn_rates,
     weighted_moments, wrap,
 )
 from pipeline.scenarios.sonobuoy import SonobuoyField
@@ -204,3 +204,15 @@ def test_filters_follow_the_target_on_a_short_clean_run():
 def test_bad_parameters_name_the_key(kwargs, key):
     with pytest.raises(ValueError, match=key):
         MultipleModelParticleFilter(**kwargs)
+
+
+def test_mode_bearings_match_the_exact_bearings_of_each_modes_position():
+    """The first stage's turn-mode bearings (CV bearing + first-order change) equal atan2 of each
+    mode's predicted position to < 1e-5 rad (the noise is 7 deg = 0.12 rad)."""
+    rng = np.random.default_rng(5)
+    target = np.concatenate([rng.normal(0, 6000, (5000, 2)), rng.normal(0, 5, (5000, 2))], axis=1)
+    buoys = rng.normal(0, 3000, (5000, 4, 2))
+    positions = predicted_positions(target, 0.01, 5.0)
+    d = positions[:, :, None, :] - buoys[:, None]
+    exact = np.arctan2(d[..., 0], d[..., 1])
+    assert np.abs(wrap(mode_bearings(positions, buoys).astype(float) - exact)).max() < 1e-5
