@@ -59,7 +59,8 @@ def stable_hash(obj: Any, length: int = 16) -> str:
 
 @functools.cache
 def code_fingerprint() -> str:
-    """Hash of the source that produces stage outputs (filters/, scenarios, sensors, table schemas).
+    """Hash of the source that produces stage outputs (filters/, scenarios, sensors, table schemas,
+    the filters' input: stages/track.py and the study adapters).
 
     In the cache key so that editing a filter, a scenario or a sensor recomputes what it
     produced, even without a version bump; a researcher changing the math must never be handed
@@ -67,8 +68,11 @@ def code_fingerprint() -> str:
     """
     root = Path(__file__).resolve().parents[1]
     digest = hashlib.sha256()
+    # the study adapters build the filters' input (track starts, priors drawn from the truth), so
+    # their modules count as producers of the estimates too
     files = [*sorted((root / "filters").rglob("*.py")), *sorted((root / "pipeline" / "scenarios").rglob("*.py")),
-             *sorted((root / "pipeline" / "sensors").rglob("*.py")), root / "pipeline" / "schemas.py"]
+             *sorted((root / "pipeline" / "sensors").rglob("*.py")), root / "pipeline" / "schemas.py",
+             *[root / "pipeline" / "stages" / f"{name}.py" for name in ("track", "bias", "sonar", "sonobuoy")]]
     for f in files:
         digest.update(f.relative_to(root).as_posix().encode())
         digest.update(f.read_bytes())
