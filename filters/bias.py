@@ -44,7 +44,7 @@ from typing import Sequence
 
 import numpy as np
 
-from filters.kalman import shared_times, times_shared
+from filters.kalman import inverse_2x2, shared_times, times_shared
 
 STATE_NAMES = ("x", "y", "vx", "vy")
 BIAS_NAMES = ("range_offset", "azimuth_offset", "range_scale", "azimuth_scale")
@@ -226,17 +226,6 @@ def predict_local(tracks: LocalTracks, dt: float, density: float) -> LocalTracks
     return LocalTracks(*_cv_move(tracks.state, tracks.covariance, tracks.bias_matrix, dt, density))
 
 
-def _inverse_2x2(S: np.ndarray) -> np.ndarray:
-    a, b, c, d = S[..., 0, 0], S[..., 0, 1], S[..., 1, 0], S[..., 1, 1]
-    det = a * d - b * c
-    inv = np.empty_like(S)
-    inv[..., 0, 0] = d / det
-    inv[..., 0, 1] = -b / det
-    inv[..., 1, 0] = -c / det
-    inv[..., 1, 1] = a / det
-    return inv
-
-
 def _times_2(A: np.ndarray, B: np.ndarray) -> np.ndarray:
     """A @ B for stacks A (..., p, 2) and B (..., 2, q) as two broadcast products: for these tiny
     matrices that beats numpy's one-product-per-matrix stacked matmul several-fold."""
@@ -252,7 +241,7 @@ def update_local(predicted: LocalTracks, z_converted: np.ndarray, noise: np.ndar
     P = predicted.covariance
     PHt = P[..., :, :2]
     S = P[..., :2, :2] + noise                                       # eq 19
-    gain = _times_2(PHt, _inverse_2x2(S))                            # eq 18
+    gain = _times_2(PHt, inverse_2x2(S))                            # eq 18
     innovation = z_converted - predicted.state[..., :2]
     state = predicted.state + gain[..., 0] * innovation[..., 0:1] + gain[..., 1] * innovation[..., 1:2]
     covariance = P - _times_2(gain, np.swapaxes(PHt, -1, -2))
@@ -320,7 +309,7 @@ def add_pseudo_measurements(info: BiasInformation, z: np.ndarray, H: np.ndarray,
     """
     H_scaled = H * info.prior_std
     if noise.shape[-1] == 2:
-        weighted = _times_2(_inverse_2x2(noise), H_scaled)            # R_b^-1 H (per target)
+        weighted = _times_2(inverse_2x2(noise), H_scaled)            # R_b^-1 H (per target)
     else:
         weighted = np.linalg.solve(noise, H_scaled)
     if valid is not None:

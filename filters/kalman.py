@@ -44,20 +44,27 @@ def predict(x: np.ndarray, P: np.ndarray, F: np.ndarray, Q: np.ndarray,
     return x_pred, P_pred
 
 
+def inverse_2x2(S: np.ndarray, det: np.ndarray | None = None) -> np.ndarray:
+    """Closed-form inverse of a stack of 2x2 matrices (one division per entry, no LAPACK call)."""
+    a, b, c, d = S[..., 0, 0], S[..., 0, 1], S[..., 1, 0], S[..., 1, 1]
+    if det is None:
+        det = a * d - b * c
+    inv = np.empty_like(S)
+    inv[..., 0, 0] = d / det
+    inv[..., 0, 1] = -b / det
+    inv[..., 1, 0] = -c / det
+    inv[..., 1, 1] = a / det
+    return inv
+
+
 def inverse_and_logdet(S: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Inverse and log-determinant of a stack of SPD matrices; closed form for m <= 2."""
     m = S.shape[-1]
     if m == 1:
         return 1.0 / S, np.log(S[..., 0, 0])
     if m == 2:
-        a, b, c, d = S[..., 0, 0], S[..., 0, 1], S[..., 1, 0], S[..., 1, 1]
-        det = a * d - b * c
-        inv = np.empty_like(S)
-        inv[..., 0, 0] = d / det
-        inv[..., 0, 1] = -b / det
-        inv[..., 1, 0] = -c / det
-        inv[..., 1, 1] = a / det
-        return inv, np.log(det)
+        det = S[..., 0, 0] * S[..., 1, 1] - S[..., 0, 1] * S[..., 1, 0]
+        return inverse_2x2(S, det), np.log(det)
     L = np.linalg.cholesky(S)
     eye = np.broadcast_to(np.eye(m), S.shape)
     L_inv = np.linalg.solve(L, eye)

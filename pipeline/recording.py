@@ -81,6 +81,18 @@ NORTH_UP_FRAME = "north_up"
 _PATH_SAFE = re.compile(r"^[A-Za-z0-9_.-]+$")
 
 
+def checked_record_runs(record_runs, runs: int) -> list[int]:
+    """record.runs as ints, each in 0..runs-1 and listed once; a ValueError naming the key otherwise."""
+    chosen = [int(r) for r in record_runs]
+    bad = [r for r in chosen if not 0 <= r < runs]
+    if bad:
+        raise ValueError(f"record.runs: {bad} out of range; the experiment has {runs} runs, "
+                         f"so each recorded run must be in 0..{runs - 1}")
+    if len(set(chosen)) != len(chosen):
+        raise ValueError(f"record.runs: {chosen} lists a run twice")
+    return chosen
+
+
 def recording_id(experiment: str) -> str:
     """The experiment name reduced to ``[A-Za-z0-9_-]`` (Rerun's catalog dislikes anything else)."""
     rid = re.sub(r"[^A-Za-z0-9_-]+", "_", experiment).strip("_")
@@ -161,13 +173,7 @@ def write_recording(path: Path, *, experiment: str, truth: Truth, detections: De
     """
     path = Path(path)
     R = truth.runs
-    record_runs = [int(r) for r in record_runs]
-    bad = [r for r in record_runs if not 0 <= r < R]
-    if bad:
-        raise ValueError(f"record.runs: {bad} out of range; the experiment has {R} runs, "
-                         f"so each recorded run must be in 0..{R - 1}")
-    if len(set(record_runs)) != len(record_runs):
-        raise ValueError(f"record.runs: {record_runs} lists a run twice")
+    record_runs = checked_record_runs(record_runs, R)
     for key in estimates:
         if not _PATH_SAFE.match(key):
             raise ValueError(f"variant key {key!r} is not path-safe (allowed: letters, digits, '_', '-', '.')")

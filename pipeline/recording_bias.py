@@ -48,9 +48,9 @@ import numpy as np
 
 from filters.bias import BIAS_NAMES, BiasRegistrationResult
 from pipeline.data import Detections, Truth
-from pipeline.recording import (_FRAMES, _PATH_SAFE, _TRUTH_COLOUR, NORTH_UP_FRAME, _atomic_recording, _ellipses,
-                                _lighter, _log_config, _log_metric_series, _metric_series, _path_part,
-                                _time_columns, _xy_index, variant_colour)
+from pipeline.recording import (_atomic_recording, checked_record_runs, _ellipses, _FRAMES, _lighter,
+    _log_config, _log_metric_series, _metric_series, NORTH_UP_FRAME, _path_part, _PATH_SAFE, _time_columns,
+    _TRUTH_COLOUR, variant_colour, _xy_index)
 
 if TYPE_CHECKING:  # pragma: no cover
     import polars as pl
@@ -99,13 +99,7 @@ def _has_bias(est: BiasRegistrationResult) -> bool:
 def _check_inputs(truth: Truth, detections: Detections, estimates: Mapping[str, BiasRegistrationResult],
                   record_runs: Sequence[int], positions: np.ndarray, true_bias: np.ndarray) -> list[int]:
     R = truth.runs
-    runs = [int(r) for r in record_runs]
-    bad = [r for r in runs if not 0 <= r < R]
-    if bad:
-        raise ValueError(f"record.runs: {bad} out of range; the experiment has {R} runs, "
-                         f"so each recorded run must be in 0..{R - 1}")
-    if len(set(runs)) != len(runs):
-        raise ValueError(f"record.runs: {runs} lists a run twice")
+    runs = checked_record_runs(record_runs, R)
     S = positions.shape[0]
     if positions.ndim != 2 or positions.shape[1] != 2:
         raise ValueError(f"sensor.positions: shape {positions.shape} must be (S, 2)")

@@ -51,9 +51,9 @@ import numpy as np
 
 from filters.base import TrackEstimate
 from pipeline.data import Detections, Truth
-from pipeline.recording import (_FRAMES, _PATH_SAFE, _TRUTH_COLOUR, _UNITS, NORTH_UP_FRAME, _atomic_recording,
-                                _ellipses, _log_config, _log_metric_series, _metric_series, _path_part,
-                                _time_columns, _xy_index, target_frame, variant_colour)
+from pipeline.recording import (_atomic_recording, checked_record_runs, _ellipses, _FRAMES, _log_config,
+    _log_metric_series, _metric_series, NORTH_UP_FRAME, _path_part, _PATH_SAFE, target_frame, _time_columns,
+    _TRUTH_COLOUR, _UNITS, variant_colour, _xy_index)
 
 if TYPE_CHECKING:  # pragma: no cover
     import polars as pl
@@ -86,13 +86,7 @@ def mode_switches(active: np.ndarray) -> np.ndarray:
 def _check_inputs(truth: Truth, detections: Detections, estimates: Mapping[str, TrackEstimate],
                   record_runs: Sequence[int]) -> list[int]:
     R = truth.runs
-    runs = [int(r) for r in record_runs]
-    bad = [r for r in runs if not 0 <= r < R]
-    if bad:
-        raise ValueError(f"record.runs: {bad} out of range; the experiment has {R} runs, "
-                         f"so each recorded run must be in 0..{R - 1}")
-    if len(set(runs)) != len(runs):
-        raise ValueError(f"record.runs: {runs} lists a run twice")
+    runs = checked_record_runs(record_runs, R)
     K = np.asarray(truth.time).shape[0]
     if "ownship" not in truth.labels:
         raise ValueError("truth: no 'ownship' label (own-ship x, y, vx, vy in the world frame); the sonar "

@@ -56,9 +56,9 @@ import numpy as np
 
 from filters.base import TrackEstimate
 from pipeline.data import Detections, Truth
-from pipeline.recording import (_FRAMES, _PATH_SAFE, _TRUTH_COLOUR, NORTH_UP_FRAME, _atomic_recording, _ellipses,
-                                _lighter, _log_config, _log_metric_series, _metric_series, _path_part,
-                                _time_columns, _xy_index, variant_colour)
+from pipeline.recording import (_atomic_recording, checked_record_runs, _ellipses, _FRAMES, _lighter,
+    _log_config, _log_metric_series, _metric_series, NORTH_UP_FRAME, _path_part, _PATH_SAFE, _time_columns,
+    _TRUTH_COLOUR, variant_colour, _xy_index)
 from pipeline.stages.sonobuoy import MODE_NAMES, UNITS
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -82,13 +82,7 @@ _BAND_COLOUR = (130, 130, 130)
 def _check_inputs(truth: Truth, detections: Detections, estimates: Mapping[str, TrackEstimate],
                   record_runs: Sequence[int], sensor) -> list[int]:
     R = truth.runs
-    runs = [int(r) for r in record_runs]
-    bad = [r for r in runs if not 0 <= r < R]
-    if bad:
-        raise ValueError(f"record.runs: {bad} out of range; the experiment has {R} runs, "
-                         f"so each recorded run must be in 0..{R - 1}")
-    if len(set(runs)) != len(runs):
-        raise ValueError(f"record.runs: {runs} lists a run twice")
+    runs = checked_record_runs(record_runs, R)
     observer = np.asarray(getattr(sensor, "observer_position", np.full(1, np.nan)), dtype=np.float64)
     if observer.shape != (2,) or not np.isfinite(observer).all():
         raise ValueError(f"sensor: {type(sensor).__name__} has no finite observer_position (east, north); the sonobuoy "

@@ -4,7 +4,6 @@ bias-registration filters, read back with rerun.chunk.RrdReader (no viewer)."""
 
 from __future__ import annotations
 
-from collections import defaultdict
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -17,6 +16,7 @@ from pipeline.data import Detections, Truth
 from pipeline.recording_bias import BIAS_DISPLAY, write_bias_recording
 from pipeline.stages.bias import bias_study_metrics
 from pipeline.stages.evaluate import metrics_frame
+from tests.rrd_reading import entity_index, read_chunks, rows, temporal
 
 RUNS, TARGETS = 2, 3
 RECORD = [0]
@@ -78,42 +78,12 @@ def rrd(case, tmp_path_factory) -> Path:
 
 @pytest.fixture(scope="module")
 def chunks(rrd):
-    from rerun.chunk import RrdReader
-
-    return [(c.entity_path, c.is_static, set(c.timeline_names), pl.from_arrow(c.to_record_batch()))
-            for c in RrdReader(rrd).stream().to_chunks()]
+    return read_chunks(rrd)
 
 
 @pytest.fixture(scope="module")
 def entities(chunks):
-    out: dict = defaultdict(lambda: {"static": set(), "temporal": set(), "timelines": set(), "rows": 0})
-    for path, static, timelines, df in chunks:
-        e = out[path]
-        cols = {c for c in df.columns if ":" in c}
-        if static:
-            e["static"] |= cols
-        else:
-            e["temporal"] |= cols
-            e["timelines"] |= timelines
-            e["rows"] += df.height
-    return dict(out)
-
-
-def _rows(chunks, entity: str, column: str) -> dict[int, list]:
-    """step -> value of ``column`` on ``entity`` (time-varying rows)."""
-    out = {}
-    for path, static, _, df in chunks:
-        if path == entity and not static and column in df.columns:
-            out.update(zip(df["step"].to_list(), df[column].to_list()))
-    return out
-
-
-def _temporal(entities, path: str, column: str) -> dict:
-    assert path in entities, f"{path} missing; have {sorted(entities)}"
-    e = entities[path]
-    assert column in e["temporal"], f"{path}: {column} not time-varying; temporal={e['temporal']}"
-    assert {"time", "step"} <= e["timelines"], f"{path}: timelines {e['timelines']}"
-    return e
+    return entity_index(chunks)
 
 
 def test_file_is_complete_and_atomic(rrd):
@@ -128,10 +98,10 @@ def test_file_is_complete_and_atomic(rrd):
 
 def test_world_entities(entities, case):
     assert "Points2D:positions" in entities["/world/radars"]["static"]
-    truth = _temporal(entities, "/world/run0/truth", "Points2D:positions")
+    truth = temporal(entities, "/world/run0/truth", "Points2D:positions")
     assert "LineStrips2D:strips" in truth["static"] and truth["rows"] == case["truth"].time.size
     for n in (1, 2):
-        meas = _temporal(entities, f"/world/run0/measurements/radar{n}", "Points2D:positions")
+        meas = temporal(entities, f"/world/run0/measurements/radar{n}", "Points2D:positions")
         assert meas["rows"] == 10                                          # each radar reports 10 times
     assert "Points2D:positions" in entities["/world/run0/measurements/all"]["static"]
     for key in VARIANTS:
@@ -140,12 +110,12 @@ def test_world_entities(entities, case):
             for kind in kinds:
                 base = f"/world/run0/{key}/radar{n}/{kind}"
                 assert "LineStrips2D:strips" in entities[f"{base}/track"]["static"]
-                assert _temporal(entities, f"{base}/estimate", "Points2D:positions")["rows"] == 10
-                _temporal(entities, f"{base}/covariance", "LineStrips2D:strips")
+                assert temporal(entities, f"{base}/estimate", "Points2D:positions")["rows"] == 10
+                temporal(entities, f"{base}/covariance", "LineStrips2D:strips")
         assert f"/world/run0/{key}/radar1/compensated/track" in entities or key == "local"
     assert "/world/run0/local/radar1/compensated/track" not in entities
     for t in KEPT:
-        _temporal(entities, f"/world/frames/target{t}_run0", "Transform3D:translation")
+        temporal(entities, f"/world/frames/target{t}_run0", "Transform3D:translation")
     assert not any(p.startswith("/world/run1") for p in entities), "run 1 was not asked for"
 
 
@@ -153,7 +123,7 @@ def test_measurements_are_converted_to_xy(chunks, case):
     det = case["det"]
     k = 3                                                                  # report at 2 s, radar 1
     n = int(det.sensor[k])
-    got = np.asarray(_rows(chunks, f"/world/run0/measurements/radar{n + 1}", "Points2D:positions")[case["steps"][k]])
+    got = np.asarray(rows(chunks, f"/world/run0/measurements/radar{n + 1}", "Points2D:positions")[case["steps"][k]])
     z = det.z[0, k]
     expected = POSITIONS[n] + z[:, :1] * np.stack([np.cos(z[:, 1]), np.sin(z[:, 1])], -1)
     np.testing.assert_allclose(got, expected, rtol=1e-6)
@@ -169,13 +139,13 @@ def test_bias_series_equal_the_estimates(chunks, entities, case):
             for c, component in enumerate(BIAS_DISPLAY):
                 entity = f"/bias/{key}/run0/radar{n}/{component}"
                 for part in ("", "/plus_2sigma", "/minus_2sigma", "/true"):
-                    e = _temporal(entities, entity + part, "Scalars:scalars")
+                    e = temporal(entities, entity + part, "Scalars:scalars")
                     assert "SeriesLines:names" in e["static"]
                 factor = BIAS_DISPLAY[component][1]
                 j = 4 * (n - 1) + c
-                mean = _rows(chunks, entity, "Scalars:scalars")
-                upper = _rows(chunks, entity + "/plus_2sigma", "Scalars:scalars")
-                true = _rows(chunks, entity + "/true", "Scalars:scalars")
+                mean = rows(chunks, entity, "Scalars:scalars")
+                upper = rows(chunks, entity + "/plus_2sigma", "Scalars:scalars")
+                true = rows(chunks, entity + "/true", "Scalars:scalars")
                 for k in (0, 7, 19):
                     step = int(case["steps"][k])
                     sigma = np.sqrt(est[key].bias_covariance[0, k, j, j])
@@ -189,7 +159,7 @@ def test_covariance_ellipse_is_2_sigma(chunks, case):
     est = case["estimates"]["proposed"]
     k = 11                                                                 # radar 1's report at 6 s
     assert est.sensor[k] == 0
-    strips = _rows(chunks, "/world/run0/proposed/radar1/compensated/covariance", "LineStrips2D:strips")
+    strips = rows(chunks, "/world/run0/proposed/radar1/compensated/covariance", "LineStrips2D:strips")
     ellipse = np.asarray(strips[int(case["steps"][k])][1])                # second kept target
     m, P = est.compensated_state[0, k, 1, :2], est.compensated_covariance[0, k, 1, :2, :2]
     d = ellipse - m
@@ -200,20 +170,20 @@ def test_metrics_and_config(entities):
     for key in ("proposed", "exx"):
         for metric in ("bias_rmse_range_offset_s1", "bias_rmse_azimuth_scale_s2", "bias_nees", "bias_nees_s1",
                        "position_rmse_s1_t3_compensated", "track_nees_s2_t1_compensated"):
-            e = _temporal(entities, f"/metrics/{metric}/{key}", "Scalars:scalars")
+            e = temporal(entities, f"/metrics/{metric}/{key}", "Scalars:scalars")
             assert {"SeriesLines:names", "SeriesLines:colors"} <= e["static"]
-    _temporal(entities, "/metrics/position_rmse_s1_t1/local", "Scalars:scalars")
+    temporal(entities, "/metrics/position_rmse_s1_t1/local", "Scalars:scalars")
     assert "/metrics/bias_rmse_range_offset_s1/local" not in entities
     for part in ("mean", "lower", "upper"):
-        _temporal(entities, f"/metrics/bias_nees/chi2/{part}", "Scalars:scalars")
+        temporal(entities, f"/metrics/bias_nees/chi2/{part}", "Scalars:scalars")
     assert "TextDocument:text" in entities["/config"]["static"]
 
 
 def test_bias_rmse_metric_in_display_units(chunks, case):
-    rows = case["metrics"].filter((pl.col("metric") == "bias_rmse_azimuth_offset_s1")
-                                  & (pl.col("variant_key") == "proposed") & (pl.col("step") == 20))
-    got = _rows(chunks, "/metrics/bias_rmse_azimuth_offset_s1/proposed", "Scalars:scalars")[20]
-    assert got[0] == pytest.approx(rows["value"][0] * 1e3)
+    expected = case["metrics"].filter((pl.col("metric") == "bias_rmse_azimuth_offset_s1")
+                                      & (pl.col("variant_key") == "proposed") & (pl.col("step") == 20))
+    got = rows(chunks, "/metrics/bias_rmse_azimuth_offset_s1/proposed", "Scalars:scalars")[20]
+    assert got[0] == pytest.approx(expected["value"][0] * 1e3)
 
 
 @pytest.mark.parametrize("bad", [[2], [-1]])

@@ -4,11 +4,9 @@ run through the real sonar and trackers, read back with rerun.chunk.RrdReader (n
 
 from __future__ import annotations
 
-from collections import defaultdict
 from pathlib import Path
 
 import numpy as np
-import polars as pl
 import pytest
 
 from filters.mgekf import KFPlusMGEKF, OnlyMGEKF
@@ -17,6 +15,7 @@ from pipeline.scenarios.sonar import SonarEncounter
 from pipeline.sensors.sonar import ActivePassiveSonar
 from pipeline.stages.evaluate import metrics_frame
 from pipeline.stages.sonar import SonarStudy
+from tests.rrd_reading import entity_index, read_chunks, rows, temporal
 
 RUNS, RECORD = 2, [1]
 VARIANTS = {"kf_mgekf": "KF + MGEKF", "only_mgekf": "only MGEKF"}
@@ -56,42 +55,12 @@ def rrd(case, tmp_path_factory) -> Path:
 
 @pytest.fixture(scope="module")
 def chunks(rrd):
-    from rerun.chunk import RrdReader
-
-    return [(c.entity_path, c.is_static, set(c.timeline_names), pl.from_arrow(c.to_record_batch()))
-            for c in RrdReader(rrd).stream().to_chunks()]
+    return read_chunks(rrd)
 
 
 @pytest.fixture(scope="module")
 def entities(chunks):
-    out: dict = defaultdict(lambda: {"static": set(), "temporal": set(), "timelines": set(), "rows": 0})
-    for path, static, timelines, df in chunks:
-        e = out[path]
-        cols = {c for c in df.columns if ":" in c}
-        if static:
-            e["static"] |= cols
-        else:
-            e["temporal"] |= cols
-            e["timelines"] |= timelines
-            e["rows"] += df.height
-    return dict(out)
-
-
-def _rows(chunks, entity: str, column: str) -> dict[int, list]:
-    """step -> value of ``column`` on ``entity`` (time-varying rows)."""
-    out = {}
-    for path, static, _, df in chunks:
-        if path == entity and not static and column in df.columns:
-            out.update(zip(df["step"].to_list(), df[column].to_list()))
-    return out
-
-
-def _temporal(entities, path: str, column: str) -> dict:
-    assert path in entities, f"{path} missing; have {sorted(entities)}"
-    e = entities[path]
-    assert column in e["temporal"], f"{path}: {column} not time-varying; temporal={e['temporal']}"
-    assert {"time", "step"} <= e["timelines"], f"{path}: timelines {e['timelines']}"
-    return e
+    return entity_index(chunks)
 
 
 def test_file_is_complete_and_atomic(rrd):
@@ -106,26 +75,26 @@ def test_file_is_complete_and_atomic(rrd):
 
 def test_entity_tree(entities):
     for name in ("ownship", "target"):
-        e = _temporal(entities, f"/world/run1/{name}", "Points2D:positions")
+        e = temporal(entities, f"/world/run1/{name}", "Points2D:positions")
         assert "LineStrips2D:strips" in e["static"] and e["rows"] == K
-    _temporal(entities, "/world/run1/measurements/bearing", "LineStrips2D:strips")
-    _temporal(entities, "/world/run1/measurements/fix", "Points2D:positions")
+    temporal(entities, "/world/run1/measurements/bearing", "LineStrips2D:strips")
+    temporal(entities, "/world/run1/measurements/fix", "Points2D:positions")
     for key in VARIANTS:
         base = f"/world/run1/{key}"
         assert "LineStrips2D:strips" in entities[f"{base}/track"]["static"]
-        assert _temporal(entities, f"{base}/estimate", "Points2D:positions")["rows"] == K
-        _temporal(entities, f"{base}/covariance", "LineStrips2D:strips")
+        assert temporal(entities, f"{base}/estimate", "Points2D:positions")["rows"] == K
+        temporal(entities, f"{base}/covariance", "LineStrips2D:strips")
         for axis in ("x", "y"):
-            assert _temporal(entities, f"/errors/run1/{axis}/{key}", "Scalars:scalars")["rows"] == K
+            assert temporal(entities, f"/errors/run1/{axis}/{key}", "Scalars:scalars")["rows"] == K
         for metric in ("position_rmse", "position_rmse_x", "position_rmse_y", "velocity_rmse", "nees"):
-            e = _temporal(entities, f"/metrics/{metric}/{key}", "Scalars:scalars")
+            e = temporal(entities, f"/metrics/{metric}/{key}", "Scalars:scalars")
             assert {"SeriesLines:names", "SeriesLines:colors"} <= e["static"]
-    _temporal(entities, "/world/frames/target_run1", "Transform3D:translation")
+    temporal(entities, "/world/frames/target_run1", "Transform3D:translation")
     assert "Transform3D:scale" in entities["/world/frames/north_up"]["static"]
-    _temporal(entities, "/sensor/mode", "StateChange:state")
+    temporal(entities, "/sensor/mode", "StateChange:state")
     assert "StateConfiguration:values" in entities["/sensor/mode"]["static"]
-    _temporal(entities, "/sensor/active", "Scalars:scalars")
-    _temporal(entities, "/sensor/events", "TextLog:text")
+    temporal(entities, "/sensor/active", "Scalars:scalars")
+    temporal(entities, "/sensor/events", "TextLog:text")
     assert "TextDocument:text" in entities["/config"]["static"]
     assert not any(p.startswith(("/world/run0", "/errors/run0")) for p in entities), "run 0 was not asked for"
 
@@ -133,11 +102,11 @@ def test_entity_tree(entities):
 def test_estimated_target_is_ownship_plus_relative_estimate(chunks, case):
     own = case["truth"].labels["ownship"][1, :, 0, :2]
     for key, est in case["estimates"].items():
-        got = _rows(chunks, f"/world/run1/{key}/estimate", "Points2D:positions")
+        got = rows(chunks, f"/world/run1/{key}/estimate", "Points2D:positions")
         for k in (0, 17, 45, K - 1):
             np.testing.assert_allclose(got[k][0], own[k] + est.state[1, k, :2], rtol=1e-6, atol=1e-3)
     # and the true target is own-ship + relative truth
-    target = _rows(chunks, "/world/run1/target", "Points2D:positions")
+    target = rows(chunks, "/world/run1/target", "Points2D:positions")
     rel = case["truth"].state[1, :, 0, :2]
     np.testing.assert_allclose(np.asarray([target[k][0] for k in range(K)]), own + rel, rtol=1e-6, atol=1e-3)
 
@@ -146,8 +115,8 @@ def test_bearing_lines_only_when_passive_and_fixes_only_when_active(chunks, case
     active, det = case["active"], case["det"]
     assert active[:15].all() and not active[15:30].any() and active[30:40].all() and not active[40:].any()
     own = case["truth"].labels["ownship"][1, :, 0, :2]
-    lines = _rows(chunks, "/world/run1/measurements/bearing", "LineStrips2D:strips")
-    fixes = _rows(chunks, "/world/run1/measurements/fix", "Points2D:positions")
+    lines = rows(chunks, "/world/run1/measurements/bearing", "LineStrips2D:strips")
+    fixes = rows(chunks, "/world/run1/measurements/fix", "Points2D:positions")
     with_line = {k for k, v in lines.items() if v}
     with_fix = {k for k, v in fixes.items() if v}
     assert with_line == set(np.nonzero(~active)[0].tolist())
@@ -167,18 +136,18 @@ def test_bearing_lines_only_when_passive_and_fixes_only_when_active(chunks, case
 
 def test_mode_series_matches_the_schedule(chunks, case):
     active = case["active"]
-    scalar = _rows(chunks, "/sensor/active", "Scalars:scalars")
+    scalar = rows(chunks, "/sensor/active", "Scalars:scalars")
     assert [scalar[k][0] for k in range(K)] == active.astype(float).tolist()
-    states = _rows(chunks, "/sensor/mode", "StateChange:state")
+    states = rows(chunks, "/sensor/mode", "StateChange:state")
     assert {k: v[0] for k, v in states.items()} == {0: "active", 15: "passive", 30: "active", 40: "passive"}
-    text = _rows(chunks, "/sensor/events", "TextLog:text")
+    text = rows(chunks, "/sensor/events", "TextLog:text")
     assert sorted(text) == [0, 15, 30, 40] and text[15][0].startswith("passive") and text[30][0].startswith("active")
 
 
 def test_covariance_ellipses_decimated_and_2_sigma(chunks, case):
     own = case["truth"].labels["ownship"][1, :, 0, :2]
     est = case["estimates"]["kf_mgekf"]
-    strips = _rows(chunks, "/world/run1/kf_mgekf/covariance", "LineStrips2D:strips")
+    strips = rows(chunks, "/world/run1/kf_mgekf/covariance", "LineStrips2D:strips")
     assert sorted(strips) == [0, 10, 15, 20, 30, 40, 50, K - 1]        # every 10th, each switch, the last
     k = 20
     ellipse = np.asarray(strips[k][0])
@@ -191,7 +160,7 @@ def test_errors_are_estimate_minus_truth(chunks, case):
     est = case["estimates"]["only_mgekf"]
     truth = case["truth"].state[1, :, 0]
     for i, axis in enumerate(("x", "y")):
-        got = _rows(chunks, f"/errors/run1/{axis}/only_mgekf", "Scalars:scalars")
+        got = rows(chunks, f"/errors/run1/{axis}/only_mgekf", "Scalars:scalars")
         for k in (1, 25, 50):
             assert got[k][0] == pytest.approx(est.state[1, k, i] - truth[k, i], rel=1e-9, abs=1e-9)
 

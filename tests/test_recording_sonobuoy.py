@@ -6,11 +6,9 @@ rerun.chunk.RrdReader (no viewer)."""
 
 from __future__ import annotations
 
-from collections import defaultdict
 from pathlib import Path
 
 import numpy as np
-import polars as pl
 import pytest
 
 from filters.base import TrackEstimate
@@ -19,6 +17,7 @@ from pipeline.scenarios.sonobuoy import SonobuoyField
 from pipeline.sensors.sonobuoy import SonobuoyBearings
 from pipeline.stages.evaluate import metrics_frame
 from pipeline.stages.sonobuoy import MODE_NAMES, SonobuoyStudy
+from tests.rrd_reading import entity_index, read_chunks, rows, temporal
 
 RUNS, RECORD = 2, [1]
 K, P = 15, 30
@@ -69,13 +68,6 @@ def _write(case, path: Path, record_runs=RECORD, estimates=None, **kwargs) -> No
                          description="A tiny study 004 for the test.", **kwargs)
 
 
-def _read(path: Path):
-    from rerun.chunk import RrdReader
-
-    return [(c.entity_path, c.is_static, set(c.timeline_names), pl.from_arrow(c.to_record_batch()))
-            for c in RrdReader(path).stream().to_chunks()]
-
-
 @pytest.fixture(scope="module")
 def rrd(case, tmp_path_factory) -> Path:
     path = tmp_path_factory.mktemp("rec") / "sonobuoy.rrd"
@@ -85,31 +77,12 @@ def rrd(case, tmp_path_factory) -> Path:
 
 @pytest.fixture(scope="module")
 def chunks(rrd):
-    return _read(rrd)
+    return read_chunks(rrd)
 
 
 @pytest.fixture(scope="module")
 def entities(chunks):
-    out: dict = defaultdict(lambda: {"static": set(), "temporal": set(), "timelines": set(), "rows": 0})
-    for path, static, timelines, df in chunks:
-        e = out[path]
-        cols = {c for c in df.columns if ":" in c}
-        if static:
-            e["static"] |= cols
-        else:
-            e["temporal"] |= cols
-            e["timelines"] |= timelines
-            e["rows"] += df.height
-    return dict(out)
-
-
-def _rows(chunks, entity: str, column: str) -> dict[int, list]:
-    """step -> value of ``column`` on ``entity`` (time-varying rows; the last row of a step)."""
-    out = {}
-    for path, static, _, df in chunks:
-        if path == entity and not static and column in df.columns:
-            out.update(zip(df["step"].to_list(), df[column].to_list()))
-    return out
+    return entity_index(chunks)
 
 
 def _texts(chunks, entity: str) -> list[str]:
@@ -123,14 +96,6 @@ def _static(chunks, entity: str, column: str):
         if path == entity and static and column in df.columns and df[column][0] is not None:
             return df[column][-1]
     raise AssertionError(f"{entity}: no static {column}")
-
-
-def _temporal(entities, path: str, column: str) -> dict:
-    assert path in entities, f"{path} missing; have {sorted(entities)}"
-    e = entities[path]
-    assert column in e["temporal"], f"{path}: {column} not time-varying; temporal={e['temporal']}"
-    assert {"time", "step"} <= e["timelines"], f"{path}: timelines {e['timelines']}"
-    return e
 
 
 def _rgba(packed: int) -> tuple[int, int, int, int]:
@@ -150,33 +115,33 @@ def test_file_is_complete_and_atomic(rrd):
 def test_entity_tree(entities):
     assert "Points2D:positions" in entities["/world/observer"]["static"]
     for name in ["truth"] + [f"buoys/{i}" for i in range(1, 5)]:
-        e = _temporal(entities, f"/world/run1/{name}", "Points2D:positions")
+        e = temporal(entities, f"/world/run1/{name}", "Points2D:positions")
         assert "LineStrips2D:strips" in e["static"] and e["rows"] == K
     for family in ("target", "buoys"):
         for kind in ("nominal", "clutter"):
-            assert _temporal(entities, f"/world/run1/bearings/{family}/{kind}", "LineStrips2D:strips")["rows"] == K
+            assert temporal(entities, f"/world/run1/bearings/{family}/{kind}", "LineStrips2D:strips")["rows"] == K
     for key in VARIANTS:
         base = f"/world/run1/{key}"
         assert "LineStrips2D:strips" in entities[f"{base}/track"]["static"]
         assert "LineStrips2D:strips" in entities[f"{base}/buoys/track"]["static"]
-        assert _temporal(entities, f"{base}/estimate", "Points2D:positions")["rows"] == K
-        _temporal(entities, f"{base}/covariance", "LineStrips2D:strips")
-        _temporal(entities, f"{base}/buoys", "Points2D:positions")
-        _temporal(entities, f"{base}/buoys/covariance", "LineStrips2D:strips")
+        assert temporal(entities, f"{base}/estimate", "Points2D:positions")["rows"] == K
+        temporal(entities, f"{base}/covariance", "LineStrips2D:strips")
+        temporal(entities, f"{base}/buoys", "Points2D:positions")
+        temporal(entities, f"{base}/buoys/covariance", "LineStrips2D:strips")
         for metric in ("position_rmse", "position_median_error", "buoy_position_rmse", "nees_position"):
-            e = _temporal(entities, f"/metrics/{metric}/{key}", "Scalars:scalars")
+            e = temporal(entities, f"/metrics/{metric}/{key}", "Scalars:scalars")
             assert {"SeriesLines:names", "SeriesLines:colors"} <= e["static"]
     for key in ("ammpf", "sir_mm"):
         for mode in MODE_NAMES:
-            _temporal(entities, f"/variants/{key}/run1/mode_probability/{mode}", "Scalars:scalars")
-            _temporal(entities, f"/metrics/mode_probability_{mode}/{key}", "Scalars:scalars")
-        _temporal(entities, f"/variants/{key}/run1/ess", "Scalars:scalars")
-        _temporal(entities, f"/metrics/ess/{key}", "Scalars:scalars")
+            temporal(entities, f"/variants/{key}/run1/mode_probability/{mode}", "Scalars:scalars")
+            temporal(entities, f"/metrics/mode_probability_{mode}/{key}", "Scalars:scalars")
+        temporal(entities, f"/variants/{key}/run1/ess", "Scalars:scalars")
+        temporal(entities, f"/metrics/ess/{key}", "Scalars:scalars")
     assert not any(p.startswith("/variants/ekf") for p in entities), "the EKF has no mode probabilities"
-    _temporal(entities, "/truth/run1/turning", "Scalars:scalars")
+    temporal(entities, "/truth/run1/turning", "Scalars:scalars")
     for side in ("lower", "upper"):
-        _temporal(entities, f"/reference/nees_position/{side}", "Scalars:scalars")
-    _temporal(entities, "/notes", "TextLog:text")
+        temporal(entities, f"/reference/nees_position/{side}", "Scalars:scalars")
+    temporal(entities, "/notes", "TextLog:text")
     assert "TextDocument:text" in entities["/config"]["static"]
     assert "Transform3D:scale" in entities["/world/frames/north_up"]["static"]
     assert not any("run0" in p for p in entities), "run 0 was not asked for"
@@ -187,13 +152,13 @@ def test_particle_cloud_only_where_kept(entities, chunks, case):
     assert clouds == ["/world/run1/ammpf/particles", "/world/run1/ammpf/particles/buoys"]
     est = case["estimates"]["ammpf"]
     X, modes = est.extras["particles"][1], est.extras["particle_modes"][1]
-    positions = _rows(chunks, "/world/run1/ammpf/particles", "Points2D:positions")
-    colours = _rows(chunks, "/world/run1/ammpf/particles", "Points2D:colors")
+    positions = rows(chunks, "/world/run1/ammpf/particles", "Points2D:positions")
+    colours = rows(chunks, "/world/run1/ammpf/particles", "Points2D:colors")
     assert sorted(positions) == list(range(K))
     for k in (0, 7, K - 1):
         np.testing.assert_allclose(np.asarray(positions[k]), X[k, :, :2], rtol=1e-6)
         assert [_rgba(c)[:3] for c in colours[k]] == [MODE_COLOURS[MODE_NAMES[m]] for m in modes[k]]
-    buoys = _rows(chunks, "/world/run1/ammpf/particles/buoys", "Points2D:positions")
+    buoys = rows(chunks, "/world/run1/ammpf/particles/buoys", "Points2D:positions")
     np.testing.assert_allclose(np.asarray(buoys[5]), X[5][:, np.array(BUOY_XY)].reshape(-1, 2), rtol=1e-6)
     text = "\n".join(_texts(chunks, "/notes"))
     assert "SIR-MM: no particle cloud drawn" in text and "EKF: no particle cloud (not a particle filter)" in text
@@ -210,7 +175,7 @@ def test_bearing_lines_nominal_and_clutter_apart(chunks, case):
     for family, slots in (("target", range(0, 4)), ("buoys", range(4, 8))):
         for kind, mask in (("nominal", ok & ~clutter), ("clutter", ok & clutter)):
             entity = f"/world/run1/bearings/{family}/{kind}"
-            lines = _rows(chunks, entity, "LineStrips2D:strips")
+            lines = rows(chunks, entity, "LineStrips2D:strips")
             assert sorted(lines) == list(range(K)), "a row at every scan (clears the previous scan's lines)"
             assert len(lines[0]) == 0, "scan 0 has no measurement"
             for k in range(K):
@@ -237,16 +202,16 @@ def test_bearing_lines_nominal_and_clutter_apart(chunks, case):
 
 def test_estimates_and_two_sigma_ellipses(chunks, case):
     est = case["estimates"]["sir_mm"]
-    got = _rows(chunks, "/world/run1/sir_mm/estimate", "Points2D:positions")
+    got = rows(chunks, "/world/run1/sir_mm/estimate", "Points2D:positions")
     np.testing.assert_allclose(np.asarray([got[k][0] for k in range(K)]), est.state[1, :, :2], rtol=1e-6)
     k = 9
-    ellipse = np.asarray(_rows(chunks, "/world/run1/sir_mm/covariance", "LineStrips2D:strips")[k][0])
+    ellipse = np.asarray(rows(chunks, "/world/run1/sir_mm/covariance", "LineStrips2D:strips")[k][0])
     d = ellipse - est.state[1, k, :2]
     np.testing.assert_allclose(np.einsum("pi,ij,pj->p", d, np.linalg.inv(est.covariance[1, k, :2, :2]), d), 4.0,
                                rtol=2e-3)
-    buoys = np.asarray(_rows(chunks, "/world/run1/sir_mm/buoys", "Points2D:positions")[k])
+    buoys = np.asarray(rows(chunks, "/world/run1/sir_mm/buoys", "Points2D:positions")[k])
     np.testing.assert_allclose(buoys, est.state[1, k][np.array(BUOY_XY)], rtol=1e-6)
-    ellipses = _rows(chunks, "/world/run1/sir_mm/buoys/covariance", "LineStrips2D:strips")[k]
+    ellipses = rows(chunks, "/world/run1/sir_mm/buoys/covariance", "LineStrips2D:strips")[k]
     assert len(ellipses) == 4
     for i, (a, b) in enumerate(BUOY_XY):
         d = np.asarray(ellipses[i]) - est.state[1, k, [a, b]]
@@ -258,14 +223,14 @@ def test_mode_probability_series(chunks, case):
     for key in ("ammpf", "sir_mm"):
         mu = case["estimates"][key].extras["mode_probabilities"]
         for m, mode in enumerate(MODE_NAMES):
-            run = _rows(chunks, f"/variants/{key}/run1/mode_probability/{mode}", "Scalars:scalars")
+            run = rows(chunks, f"/variants/{key}/run1/mode_probability/{mode}", "Scalars:scalars")
             np.testing.assert_allclose([run[k][0] for k in range(K)], mu[1, :, m], rtol=1e-12)
-            mean = _rows(chunks, f"/metrics/mode_probability_{mode}/{key}", "Scalars:scalars")
+            mean = rows(chunks, f"/metrics/mode_probability_{mode}/{key}", "Scalars:scalars")
             np.testing.assert_allclose([mean[k][0] for k in range(K)], mu[:, :, m].mean(0), rtol=1e-12)
             # the Monte Carlo mean in the mode's colour, the run lighter
             assert _rgba(_static(chunks, f"/metrics/mode_probability_{mode}/{key}", "SeriesLines:colors")[0])[:3] == \
                 MODE_COLOURS[mode]
-    turning = _rows(chunks, "/truth/run1/turning", "Scalars:scalars")
+    turning = rows(chunks, "/truth/run1/turning", "Scalars:scalars")
     expected = (case["truth"].labels["turn_mode"][1, :, 0] == 3).astype(float)
     assert [turning[k][0] for k in range(K)] == expected.tolist() and 0 < expected.sum() < K
 
@@ -276,8 +241,8 @@ def test_nees_band(chunks):
     assert nees_band(100) == pytest.approx((1.6272798250, 2.4105789551), rel=1e-8)
     lo, hi = nees_band(RUNS)
     assert (lo, hi) == pytest.approx((0.2422092785, 5.5716433909), rel=1e-8)
-    assert _rows(chunks, "/reference/nees_position/lower", "Scalars:scalars")[3][0] == pytest.approx(lo)
-    assert _rows(chunks, "/reference/nees_position/upper", "Scalars:scalars")[3][0] == pytest.approx(hi)
+    assert rows(chunks, "/reference/nees_position/lower", "Scalars:scalars")[3][0] == pytest.approx(lo)
+    assert rows(chunks, "/reference/nees_position/upper", "Scalars:scalars")[3][0] == pytest.approx(hi)
 
 
 def test_cloud_of_the_recorded_runs_only_and_thinned(case, tmp_path):
@@ -291,7 +256,7 @@ def test_cloud_of_the_recorded_runs_only_and_thinned(case, tmp_path):
     write_sonobuoy_recording(path, experiment="thin", truth=case["truth"], detections=case["det"],
                              estimates=estimates, display_names=VARIANTS, metrics=None, record_runs=[1],
                              sensor=case["sensor"], max_particles=10)
-    got = _rows(_read(path), "/world/run1/ammpf/particles", "Points2D:positions")
+    got = rows(read_chunks(path), "/world/run1/ammpf/particles", "Points2D:positions")
     keep = np.linspace(0, P - 1, 10).round().astype(int)
     np.testing.assert_allclose(np.asarray(got[4]), est.extras["particles"][1, 4, keep, :2], rtol=1e-6)
 

@@ -12,29 +12,10 @@ from typing import Sequence
 
 import numpy as np
 
+from pipeline.checks import finite, positive
 from pipeline.data import Truth
 
 STATE_NAMES = ("x", "y", "vx", "vy", "ax", "ay")
-
-
-def _positive(key: str, value: object, unit: str) -> float:
-    try:
-        number = float(value)
-    except (TypeError, ValueError):
-        raise ValueError(f"{key}: {value!r} must be a number > 0 {unit}") from None
-    if not (np.isfinite(number) and number > 0):
-        raise ValueError(f"{key}: {value!r} must be > 0 {unit}")
-    return number
-
-
-def _finite(key: str, value: object, unit: str) -> float:
-    try:
-        number = float(value)
-    except (TypeError, ValueError):
-        raise ValueError(f"{key}: {value!r} must be a finite number in {unit}") from None
-    if not np.isfinite(number):
-        raise ValueError(f"{key}: {value!r} must be a finite number in {unit}")
-    return number
 
 
 def _discrete_track(start: np.ndarray, speed: float, course_deg: np.ndarray, dt: float
@@ -106,18 +87,18 @@ class SonarEncounter:
                  target_offset: Sequence[float] = (5000.0, 10000.0), target_speed: float = 7.0,
                  target_heading: float = 225.0, target_turns: Sequence[Sequence[float]] = (),
                  target_turn_rate: float = 0.5) -> None:
-        self.dt = _positive("dt", dt, "s")
-        duration = _positive("duration", duration, "s")
+        self.dt = positive("dt", dt, "s")
+        duration = positive("duration", duration, "s")
         steps = duration / self.dt
         if not (steps >= 1 - 1e-9 and abs(steps - round(steps)) <= 1e-9 * steps):
             raise ValueError(f"duration: {duration:g} s must be a whole number (>= 1) of scan periods "
                              f"dt = {self.dt:g} s")
         self.steps = int(round(steps))
         self.duration = self.steps * self.dt
-        self.ownship_speed = _positive("ownship_speed", ownship_speed, "m/s")
-        self.ownship_leg = _positive("ownship_leg", ownship_leg, "s")
-        self.ownship_turn_rate = _positive("ownship_turn_rate", ownship_turn_rate, "deg/s")
-        self.ownship_leg_heading = _finite("ownship_leg_heading", ownship_leg_heading, "deg")
+        self.ownship_speed = positive("ownship_speed", ownship_speed, "m/s")
+        self.ownship_leg = positive("ownship_leg", ownship_leg, "s")
+        self.ownship_turn_rate = positive("ownship_turn_rate", ownship_turn_rate, "deg/s")
+        self.ownship_leg_heading = finite("ownship_leg_heading", ownship_leg_heading, "deg")
         if not 0 <= self.ownship_leg_heading < 90:
             raise ValueError(f"ownship_leg_heading: {ownship_leg_heading!r} must be in [0, 90) deg "
                              f"(the legs are +h and -h about north)")
@@ -128,9 +109,9 @@ class SonarEncounter:
         if offset.shape != (2,) or not np.all(np.isfinite(offset)):
             raise ValueError(f"target_offset: {target_offset!r} must be a finite [east, north] in m")
         self.target_offset = offset
-        self.target_speed = _positive("target_speed", target_speed, "m/s")
-        self.target_heading = _finite("target_heading", target_heading, "deg")
-        self.target_turn_rate = _positive("target_turn_rate", target_turn_rate, "deg/s")
+        self.target_speed = positive("target_speed", target_speed, "m/s")
+        self.target_heading = finite("target_heading", target_heading, "deg")
+        self.target_turn_rate = positive("target_turn_rate", target_turn_rate, "deg/s")
         turns = []
         for i, turn in enumerate(target_turns):
             key = f"target_turns[{i}]"

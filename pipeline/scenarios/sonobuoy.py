@@ -12,6 +12,7 @@ from typing import Sequence
 
 import numpy as np
 
+from pipeline.checks import non_negative, positive
 from pipeline.data import Truth
 from pipeline.seeding import run_generators
 
@@ -21,26 +22,6 @@ STATE_NAMES = ("x", "y", "vx", "vy") + tuple(
 CV, COUNTER_CLOCKWISE, CLOCKWISE = 1, 2, 3      # the seed's mode numbers by its FORMULA (see SonobuoyField)
 TURN_DIRECTIONS = {"right": -1.0, "left": 1.0}  # sign of Omega (Omega > 0 turns counter-clockwise)
 NOISE_GAINS = ("standard", "paper")
-
-
-def _positive(key: str, value: object, unit: str) -> float:
-    try:
-        number = float(value)
-    except (TypeError, ValueError):
-        raise ValueError(f"{key}: {value!r} must be a number > 0 {unit}") from None
-    if not (np.isfinite(number) and number > 0):
-        raise ValueError(f"{key}: {value!r} must be > 0 {unit}")
-    return number
-
-
-def _non_negative(key: str, value: object, unit: str) -> float:
-    try:
-        number = float(value)
-    except (TypeError, ValueError):
-        raise ValueError(f"{key}: {value!r} must be a number >= 0 {unit}") from None
-    if not (np.isfinite(number) and number >= 0):
-        raise ValueError(f"{key}: {value!r} must be >= 0 {unit}")
-    return number
 
 
 def _finite_array(key: str, value: object, shape: tuple[int, ...], what: str) -> np.ndarray:
@@ -134,8 +115,8 @@ class SonobuoyField:
                  buoy_drift: Sequence[float] = (0.2, 0.1), buoy_sigma: float = 0.0005,
                  target_turn_start: float | None = None, target_turn_acceleration: float = 0.005,
                  turn_direction: str = "right", noise_gain: str = "standard") -> None:
-        self.dt = _positive("dt", dt, "s")
-        duration = _positive("duration", duration, "s")
+        self.dt = positive("dt", dt, "s")
+        duration = positive("duration", duration, "s")
         steps = duration / self.dt
         if not (steps >= 1 - 1e-9 and abs(steps - round(steps)) <= 1e-9 * steps):
             raise ValueError(f"duration: {duration:g} s must be a whole number (>= 1) of scan periods "
@@ -148,15 +129,15 @@ class SonobuoyField:
         self.buoy_positions = _finite_array("buoy_positions", buoy_positions, (BUOYS, 2),
                                             f"{BUOYS} finite [east, north] positions in m")
         self.buoy_drift = _finite_array("buoy_drift", buoy_drift, (2,), "a finite [east, north] in m/s")
-        self.buoy_sigma = _non_negative("buoy_sigma", buoy_sigma, "m/s^2")
+        self.buoy_sigma = non_negative("buoy_sigma", buoy_sigma, "m/s^2")
         if target_turn_start is None:
             self.target_turn_start = None
         else:
-            self.target_turn_start = _non_negative("target_turn_start", target_turn_start, "s (or null: no turn)")
+            self.target_turn_start = non_negative("target_turn_start", target_turn_start, "s (or null: no turn)")
             if not np.hypot(*self.target_velocity) > 0:
                 raise ValueError(f"target_velocity: {target_velocity!r} must be non-zero when the target turns "
                                  f"(turn rate = acceleration / speed)")
-        self.target_turn_acceleration = _positive("target_turn_acceleration", target_turn_acceleration, "m/s^2")
+        self.target_turn_acceleration = positive("target_turn_acceleration", target_turn_acceleration, "m/s^2")
         if not isinstance(turn_direction, str) or turn_direction not in TURN_DIRECTIONS:
             raise ValueError(f"turn_direction: {turn_direction!r} must be one of {list(TURN_DIRECTIONS)}")
         self.turn_direction = turn_direction

@@ -11,6 +11,7 @@ from typing import Sequence
 
 import numpy as np
 
+from pipeline.checks import non_negative
 from pipeline.data import Detections, Truth
 from pipeline.seeding import run_generators
 
@@ -18,16 +19,6 @@ MEASUREMENT_NAMES = ("bearing", "range")
 MEASUREMENT_UNITS = ("rad", "m")
 PASSIVE, ACTIVE = 0, 1          # Detections.sensor: the passive array, the active sonar
 TIME_TOLERANCE = 1e-9           # [s] a scan time this close to an interval edge counts as on it
-
-
-def _non_negative(key: str, value: object, unit: str) -> float:
-    try:
-        number = float(value)
-    except (TypeError, ValueError):
-        raise ValueError(f"{key}: {value!r} must be a number >= 0 {unit}") from None
-    if not (np.isfinite(number) and number >= 0):
-        raise ValueError(f"{key}: {value!r} must be >= 0 {unit}")
-    return number
 
 
 def wrap_angle(angle: np.ndarray) -> np.ndarray:
@@ -80,8 +71,8 @@ class ActivePassiveSonar:
                                  f"active_intervals[{i - 1}]; intervals must be sorted and not overlap")
             intervals.append((start, end))
         self.active_intervals = intervals
-        self.bearing_std = np.radians(_non_negative("bearing_std_deg", bearing_std_deg, "deg"))
-        self.range_std = _non_negative("range_std", range_std, "m")
+        self.bearing_std = np.radians(non_negative("bearing_std_deg", bearing_std_deg, "deg"))
+        self.range_std = non_negative("range_std", range_std, "m")
 
     def is_active(self, time: np.ndarray) -> np.ndarray:
         """bool array of ``time``'s shape: True where a scan at that time [s] is active."""

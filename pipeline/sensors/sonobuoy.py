@@ -12,6 +12,7 @@ from typing import Sequence
 
 import numpy as np
 
+from pipeline.checks import non_negative
 from pipeline.data import Detections, Truth
 from pipeline.scenarios.sonobuoy import BUOYS, STATE_NAMES
 from pipeline.seeding import run_generators
@@ -21,16 +22,6 @@ MEASUREMENT_NAMES = ("bearing",)
 MEASUREMENT_UNITS = ("rad",)
 COMPONENTS = 2 * BUOYS          # theta_1..4 (target from buoy i), then phi_1..4 (buoy i from the observer)
 CLUTTER = -1                    # Detections.target of a clutter return
-
-
-def _non_negative(key: str, value: object, unit: str) -> float:
-    try:
-        number = float(value)
-    except (TypeError, ValueError):
-        raise ValueError(f"{key}: {value!r} must be a number >= 0 {unit}") from None
-    if not (np.isfinite(number) and number >= 0):
-        raise ValueError(f"{key}: {value!r} must be >= 0 {unit}")
-    return number
 
 
 def _probability(key: str, value: object) -> float:
@@ -102,11 +93,11 @@ class SonobuoyBearings:
         if observer.shape != (2,) or not np.all(np.isfinite(observer)):
             raise ValueError(f"observer_position: {observer_position!r} must be a finite [east, north] in m")
         self.observer_position = observer
-        target_std = np.radians(_non_negative("target_bearing_std_deg", target_bearing_std_deg, "deg"))
-        buoy_std = np.radians(_non_negative("buoy_bearing_std_deg", buoy_bearing_std_deg, "deg"))
-        clutter_target = np.radians(_non_negative("clutter_target_bearing_std_deg",
+        target_std = np.radians(non_negative("target_bearing_std_deg", target_bearing_std_deg, "deg"))
+        buoy_std = np.radians(non_negative("buoy_bearing_std_deg", buoy_bearing_std_deg, "deg"))
+        clutter_target = np.radians(non_negative("clutter_target_bearing_std_deg",
                                                   clutter_target_bearing_std_deg, "deg"))
-        clutter_buoy = np.radians(_non_negative("clutter_buoy_bearing_std_deg", clutter_buoy_bearing_std_deg, "deg"))
+        clutter_buoy = np.radians(non_negative("clutter_buoy_bearing_std_deg", clutter_buoy_bearing_std_deg, "deg"))
         self.nominal_std = np.repeat([target_std, buoy_std], BUOYS)
         self.clutter_std = np.repeat([clutter_target, clutter_buoy], BUOYS)
         self.miss_probability = _probability("miss_probability", miss_probability)
