@@ -33,3 +33,11 @@ def finite(key: str, value: object, unit: str) -> float:
     if not np.isfinite(number):
         raise ValueError(f"{key}: {value!r} must be a finite number in {unit}")
     return number
+
+
+def whole_steps(duration: float, dt: float) -> int:
+    """How many steps of ``dt`` make ``duration`` (which must be a whole number >= 1 of them)."""
+    steps = duration / dt
+    if not (steps >= 1 - 1e-9 and abs(steps - round(steps)) <= 1e-9 * steps):
+        raise ValueError(f"duration: {duration:g} s must be a whole number (>= 1) of scan periods dt = {dt:g} s")
+    return int(round(steps))

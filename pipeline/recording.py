@@ -93,6 +93,13 @@ def checked_record_runs(record_runs, runs: int) -> list[int]:
     return chosen
 
 
+def log_north_up(rr, rec) -> None:
+    """The "north_up" frame the 2-D views look from: Rerun draws 2-D y downwards (image
+    convention), so the frame flips y and north is up."""
+    rec.log(f"{_FRAMES}/north_up", rr.Transform3D(scale=np.array([1.0, -1.0, 1.0]), parent_frame="tf#/world",
+                                                  child_frame=NORTH_UP_FRAME), static=True)
+
+
 def recording_id(experiment: str) -> str:
     """The experiment name reduced to ``[A-Za-z0-9_-]`` (Rerun's catalog dislikes anything else)."""
     rid = re.sub(r"[^A-Za-z0-9_-]+", "_", experiment).strip("_")
@@ -217,8 +224,7 @@ def write_recording(path: Path, *, experiment: str, truth: Truth, detections: De
         # named frames whose y axis is flipped, so north is up: "north_up" for the whole scene and,
         # per recorded run, "target_run{r}" centred on the true target position at each step.
         flip = np.array([1.0, -1.0, 1.0])
-        rec.log(f"{_FRAMES}/north_up", rr.Transform3D(scale=flip, parent_frame="tf#/world",
-                                                      child_frame=NORTH_UP_FRAME), static=True)
+        log_north_up(rr, rec)
         for r in record_runs:
             world = f"/world/run{r}"
             # ---- truth: whole trajectory (static) + current position --------------------------

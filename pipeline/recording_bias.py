@@ -48,7 +48,7 @@ import numpy as np
 
 from filters.bias import BIAS_NAMES, BiasRegistrationResult
 from pipeline.data import Detections, Truth
-from pipeline.recording import (_atomic_recording, checked_record_runs, _ellipses, _FRAMES, _lighter,
+from pipeline.recording import (log_north_up, _atomic_recording, checked_record_runs, _ellipses, _FRAMES, _lighter,
     _log_config, _log_metric_series, _metric_series, NORTH_UP_FRAME, _path_part, _PATH_SAFE, _time_columns,
     _TRUTH_COLOUR, variant_colour, _xy_index)
 
@@ -264,8 +264,7 @@ def write_bias_recording(path: Path, *, experiment: str, truth: Truth, detection
         times = _time_columns(rr)
         ui = rr.Radius.ui_points
         flip = np.array([1.0, -1.0, 1.0])
-        rec.log(f"{_FRAMES}/north_up", rr.Transform3D(scale=flip, parent_frame="tf#/world",
-                                                      child_frame=NORTH_UP_FRAME), static=True)
+        log_north_up(rr, rec)
         rec.log("/world/radars", rr.Points2D(positions, colors=[radar_colour(n) for n in range(S)], radii=ui(8.0),
                                              labels=[f"{n + 1}: {name}" for n, name in enumerate(names)],
                                              show_labels=True, draw_order=50.0), static=True)

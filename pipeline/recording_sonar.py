@@ -51,7 +51,7 @@ import numpy as np
 
 from filters.base import TrackEstimate
 from pipeline.data import Detections, Truth
-from pipeline.recording import (_atomic_recording, checked_record_runs, _ellipses, _FRAMES, _log_config,
+from pipeline.recording import (log_north_up, _atomic_recording, checked_record_runs, _ellipses, _FRAMES, _log_config,
     _log_metric_series, _metric_series, NORTH_UP_FRAME, _path_part, _PATH_SAFE, target_frame, _time_columns,
     _TRUTH_COLOUR, _UNITS, variant_colour, _xy_index)
 
@@ -177,8 +177,7 @@ def write_sonar_recording(path: Path, *, experiment: str, truth: Truth, detectio
         times = _time_columns(rr)
         ui = rr.Radius.ui_points
         flip = np.array([1.0, -1.0, 1.0])
-        rec.log(f"{_FRAMES}/north_up", rr.Transform3D(scale=flip, parent_frame="tf#/world",
-                                                      child_frame=NORTH_UP_FRAME), static=True)
+        log_north_up(rr, rec)
         steps_all = np.arange(K, dtype=np.int64)
         for r in record_runs:
             _log_run(rr, rec, times, ui, r, time, ownship[r], target[r], relative[r], detections, active,

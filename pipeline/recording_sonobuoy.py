@@ -56,7 +56,7 @@ import numpy as np
 
 from filters.base import TrackEstimate
 from pipeline.data import Detections, Truth
-from pipeline.recording import (_atomic_recording, checked_record_runs, _ellipses, _FRAMES, _lighter,
+from pipeline.recording import (log_north_up, _atomic_recording, checked_record_runs, _ellipses, _lighter,
     _log_config, _log_metric_series, _metric_series, NORTH_UP_FRAME, _path_part, _PATH_SAFE, _time_columns,
     _TRUTH_COLOUR, variant_colour, _xy_index)
 from pipeline.stages.sonobuoy import MODE_NAMES, UNITS
@@ -206,9 +206,7 @@ def write_sonobuoy_recording(path: Path, *, experiment: str, truth: Truth, detec
     with _atomic_recording(rr, path, experiment, blueprint) as rec:
         times = _time_columns(rr)
         ui = rr.Radius.ui_points
-        flip = np.array([1.0, -1.0, 1.0])
-        rec.log(f"{_FRAMES}/north_up", rr.Transform3D(scale=flip, parent_frame="tf#/world",
-                                                      child_frame=NORTH_UP_FRAME), static=True)
+        log_north_up(rr, rec)
         rec.log("/world/observer", rr.Points2D([observer], colors=_OBSERVER_COLOUR, radii=ui(7.0), labels="observer",
                                                show_labels=True, draw_order=50.0), static=True)
         for r in record_runs:

@@ -20,7 +20,6 @@ from typing import Any, Callable
 import polars as pl
 from omegaconf import DictConfig, OmegaConf
 
-from filters.base import TrackEstimate
 from pipeline import schemas
 from pipeline.config import build, flatten, selected_variants, validate
 from pipeline.errors import ConfigError

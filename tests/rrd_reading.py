@@ -47,3 +47,14 @@ def temporal(entities, path: str, column: str) -> dict:
     assert column in e["temporal"], f"{path}: {column} not time-varying; temporal={e['temporal']}"
     assert {"time", "step"} <= e["timelines"], f"{path}: timelines {e['timelines']}"
     return e
+
+
+def assert_complete_recording(path: Path, recording_id: str) -> None:
+    """One recording of that id, with a store and a blueprint, and no temporary file beside it."""
+    from rerun.chunk import RrdReader
+
+    reader = RrdReader(path)
+    assert [(r.application_id, r.recording_id) for r in reader.recordings()] == [("mtt", recording_id)]
+    assert reader.store() is not None
+    assert reader.blueprints(), "no blueprint stored in the .rrd"
+    assert [p.name for p in path.parent.iterdir()] == [path.name], "temporary file left behind"

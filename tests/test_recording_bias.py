@@ -16,7 +16,7 @@ from pipeline.data import Detections, Truth
 from pipeline.recording_bias import BIAS_DISPLAY, write_bias_recording
 from pipeline.stages.bias import bias_study_metrics
 from pipeline.stages.evaluate import metrics_frame
-from tests.rrd_reading import entity_index, read_chunks, rows, temporal
+from tests.rrd_reading import assert_complete_recording, entity_index, read_chunks, rows, temporal
 
 RUNS, TARGETS = 2, 3
 RECORD = [0]
@@ -87,13 +87,7 @@ def entities(chunks):
 
 
 def test_file_is_complete_and_atomic(rrd):
-    from rerun.chunk import RrdReader
-
-    reader = RrdReader(rrd)
-    assert [(r.application_id, r.recording_id) for r in reader.recordings()] == [("mtt", "bias_tiny")]
-    assert reader.store() is not None
-    assert reader.blueprints(), "no blueprint stored in the .rrd"
-    assert [p.name for p in rrd.parent.iterdir()] == ["bias.rrd"], "temporary file left behind"
+    assert_complete_recording(rrd, "bias_tiny")
 
 
 def test_world_entities(entities, case):

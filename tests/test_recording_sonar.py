@@ -15,7 +15,7 @@ from pipeline.scenarios.sonar import SonarEncounter
 from pipeline.sensors.sonar import ActivePassiveSonar
 from pipeline.stages.evaluate import metrics_frame
 from pipeline.stages.sonar import SonarStudy
-from tests.rrd_reading import entity_index, read_chunks, rows, temporal
+from tests.rrd_reading import assert_complete_recording, entity_index, read_chunks, rows, temporal
 
 RUNS, RECORD = 2, [1]
 VARIANTS = {"kf_mgekf": "KF + MGEKF", "only_mgekf": "only MGEKF"}
@@ -64,13 +64,7 @@ def entities(chunks):
 
 
 def test_file_is_complete_and_atomic(rrd):
-    from rerun.chunk import RrdReader
-
-    reader = RrdReader(rrd)
-    assert [(r.application_id, r.recording_id) for r in reader.recordings()] == [("mtt", "sonar_tiny")]
-    assert reader.store() is not None
-    assert reader.blueprints(), "no blueprint stored in the .rrd"
-    assert [p.name for p in rrd.parent.iterdir()] == ["sonar.rrd"], "temporary file left behind"
+    assert_complete_recording(rrd, "sonar_tiny")
 
 
 def test_entity_tree(entities):

@@ -17,7 +17,7 @@ from pipeline.scenarios.sonobuoy import SonobuoyField
 from pipeline.sensors.sonobuoy import SonobuoyBearings
 from pipeline.stages.evaluate import metrics_frame
 from pipeline.stages.sonobuoy import MODE_NAMES, SonobuoyStudy
-from tests.rrd_reading import entity_index, read_chunks, rows, temporal
+from tests.rrd_reading import assert_complete_recording, entity_index, read_chunks, rows, temporal
 
 RUNS, RECORD = 2, [1]
 K, P = 15, 30
@@ -103,13 +103,7 @@ def _rgba(packed: int) -> tuple[int, int, int, int]:
 
 
 def test_file_is_complete_and_atomic(rrd):
-    from rerun.chunk import RrdReader
-
-    reader = RrdReader(rrd)
-    assert [(r.application_id, r.recording_id) for r in reader.recordings()] == [("mtt", "sonobuoy_tiny")]
-    assert reader.store() is not None
-    assert reader.blueprints(), "no blueprint stored in the .rrd"
-    assert [p.name for p in rrd.parent.iterdir()] == ["sonobuoy.rrd"], "temporary file left behind"
+    assert_complete_recording(rrd, "sonobuoy_tiny")
 
 
 def test_entity_tree(entities):

@@ -12,7 +12,7 @@ from typing import Sequence
 
 import numpy as np
 
-from pipeline.checks import finite, positive
+from pipeline.checks import finite, positive, whole_steps
 from pipeline.data import Truth
 
 STATE_NAMES = ("x", "y", "vx", "vy", "ax", "ay")
@@ -89,11 +89,7 @@ class SonarEncounter:
                  target_turn_rate: float = 0.5) -> None:
         self.dt = positive("dt", dt, "s")
         duration = positive("duration", duration, "s")
-        steps = duration / self.dt
-        if not (steps >= 1 - 1e-9 and abs(steps - round(steps)) <= 1e-9 * steps):
-            raise ValueError(f"duration: {duration:g} s must be a whole number (>= 1) of scan periods "
-                             f"dt = {self.dt:g} s")
-        self.steps = int(round(steps))
+        self.steps = whole_steps(duration, self.dt)
         self.duration = self.steps * self.dt
         self.ownship_speed = positive("ownship_speed", ownship_speed, "m/s")
         self.ownship_leg = positive("ownship_leg", ownship_leg, "s")

@@ -12,7 +12,7 @@ from typing import Sequence
 
 import numpy as np
 
-from pipeline.checks import non_negative, positive
+from pipeline.checks import non_negative, positive, whole_steps
 from pipeline.data import Truth
 from pipeline.seeding import run_generators
 
@@ -117,11 +117,7 @@ class SonobuoyField:
                  turn_direction: str = "right", noise_gain: str = "standard") -> None:
         self.dt = positive("dt", dt, "s")
         duration = positive("duration", duration, "s")
-        steps = duration / self.dt
-        if not (steps >= 1 - 1e-9 and abs(steps - round(steps)) <= 1e-9 * steps):
-            raise ValueError(f"duration: {duration:g} s must be a whole number (>= 1) of scan periods "
-                             f"dt = {self.dt:g} s")
-        self.steps = int(round(steps))
+        self.steps = whole_steps(duration, self.dt)
         self.duration = self.steps * self.dt
         self.target_start = _finite_array("target_start", target_start, (2,), "a finite [east, north] in m")
         self.target_velocity = _finite_array("target_velocity", target_velocity, (2,),
