@@ -6,7 +6,7 @@ in its own seeded stage ("prior", per run), or for case 1B a fixed target prior 
 field. Per-step metrics (step k is t = k T):
 
 - ``position_rmse`` / ``position_median_error``: the target's position error, RMS and median over runs;
-- ``buoy_position_rmse``: RMS over runs and the four buoys;
+- ``buoy_position_rmse`` / ``buoy_position_median_error``: RMS / median over runs and the four buoys;
 - ``nees_position`` / ``nees_position_median``: the target position NEES (2 dof), mean and median over runs;
 - ``ess`` (particle filters): mean effective sample size; ``mode_probability_cv/_ccw/_cw``: mean
   over runs of the filter's mode probabilities (ccw: Omega > 0, the seed's r = 2; cw: Omega < 0, r = 3).
@@ -29,7 +29,7 @@ from pipeline.errors import ConfigError
 from pipeline.seeding import run_generators
 from pipeline.stages.evaluate import _quiet_nanmean
 
-UNITS = {"position_rmse": "m", "position_median_error": "m", "buoy_position_rmse": "m",
+UNITS = {"position_rmse": "m", "position_median_error": "m", "buoy_position_rmse": "m", "buoy_position_median_error": "m",
          "nees_position": "1 (chi2 dof = 2)", "nees_position_median": "1 (chi2 dof = 2: median 1.39)", "ess": "particles", "mode_probability_cv": "probability",
          "mode_probability_ccw": "probability", "mode_probability_cw": "probability",
          "track_loss_rate": "fraction of runs", "final_position_rmse": "m", "peak_median_error": "m"}
@@ -109,7 +109,10 @@ class SonobuoyStudy:
         with np.errstate(invalid="ignore"), _quiet_nanmean():
             out["position_rmse"] = np.sqrt(np.nanmean(error**2, axis=0))
             out["position_median_error"] = np.nanmedian(error, axis=0)
-            out["buoy_position_rmse"] = np.sqrt(np.nanmean(np.sum(buoy_error**2, axis=-1).mean(axis=-1), axis=0))
+            buoy_distance = np.sqrt(np.sum(buoy_error**2, axis=-1))                       # (R, K, 4)
+            out["buoy_position_rmse"] = np.sqrt(np.nanmean((buoy_distance**2).mean(axis=-1), axis=0))
+            out["buoy_position_median_error"] = np.nanmedian(buoy_distance.reshape(error.shape[0], -1, 4)
+                                                             .transpose(0, 2, 1).reshape(-1, error.shape[1]), axis=0)
             e = estimate.state[..., 0:2] - true[..., 0:2]
             P = estimate.covariance[..., 0:2, 0:2]
             ok = np.isfinite(e).all(-1) & np.isfinite(P).all((-1, -2))
