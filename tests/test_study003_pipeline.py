@@ -93,7 +93,8 @@ def test_cached_estimates_give_the_same_summary(study_run, caplog):
 @pytest.mark.parametrize("overrides, message", [
     (["filters.kf_mgekf.handover_acceleration_variance=1.0"], "filters.kf_mgekf: handover_acceleration_variance: 1.0"),
     (["sensors.active_intervals=[[10,300]]"], "sensors.active_intervals: [[10.0, 300.0]] must start active at t = 0"),
-    (["target_model.tau=0"], "filters.kf_mgekf: tau: 0 must be a finite number > 0"),
+    (["filters.kf_mgekf.tau=0"], "filters.kf_mgekf: tau: 0 must be a finite number > 0"),
+    (["target_model.tau=0"], "study: bound_tau: 0 must be > 0"),
     (["study.bump_window=-1"], "study: bump_window: -1"),
 ])
 def test_bad_config_is_rejected_before_any_stage(tmp_path, overrides, message):

@@ -18,13 +18,16 @@ from __future__ import annotations
 
 import numpy as np
 
-from filters.mgekf import STATE_NAMES, SonarReports
+from filters.bounds import posterior_crlb
+from filters.mgekf import STATE_NAMES, SonarReports, jacobian_rows, relative_motion_model
 from pipeline import schemas
 from pipeline.data import Detections, Truth
 from pipeline.errors import ConfigError
 from pipeline.stages.evaluate import _quiet_nanmean, per_step_metrics
 
-UNITS = {"position_rmse_x": "m", "position_rmse_y": "m", "rmse_x": "m", "rmse_y": "m", "median_run_rmse_x": "m",
+UNITS = {"position_bound": "m (sqrt trace of the clairvoyant PCRLB position block)",
+         "position_bound_model": "m (sqrt trace of the PCRLB of the trackers' Singer model)",
+         "position_rmse_over_bound": "ratio (position RMSE / PCRLB)", "position_rmse_x": "m", "position_rmse_y": "m", "rmse_x": "m", "rmse_y": "m", "median_run_rmse_x": "m",
          "median_run_rmse_y": "m", "paired_ratio_x": "ratio to the reference variant, median over runs",
          "paired_ratio_y": "ratio to the reference variant, median over runs", "peak_position_rmse": "m"}
 
@@ -36,14 +39,25 @@ class SonarStudy:
     ----------
     bump_window : seconds after each active -> passive switch in which the peak position RMSE
         is reported (spec 003: KF + MGEKF's error rises within 300 s of each switch)
+    bound_tau, bound_sigma_m, bound_velocity_std : the model whose posterior Cramer-Rao bound is
+        reported (``position_bound``, ``position_rmse_over_bound``): the trackers' 6-state model
+        (tau [s], sigma_m [m/s^2]) and start (velocity std [m/s]); None leaves the bound out
     """
 
     estimate_table = "estimates"
 
-    def __init__(self, bump_window: float = 300.0) -> None:
+    def __init__(self, bump_window: float = 300.0, bound_tau: float | None = None,
+                 bound_sigma_m: float | None = None, bound_velocity_std: float = 15.0) -> None:
         if not (np.isfinite(bump_window) and bump_window > 0):
             raise ValueError(f"bump_window: {bump_window} must be > 0 s")
+        for key, value in (("bound_tau", bound_tau), ("bound_sigma_m", bound_sigma_m),
+                           ("bound_velocity_std", bound_velocity_std)):
+            if value is not None and not (np.isfinite(value) and value > 0):
+                raise ValueError(f"{key}: {value} must be > 0 (or null to leave the bound out)")
         self.bump_window = float(bump_window)
+        self.bound_model = None if bound_tau is None or bound_sigma_m is None else (
+            float(bound_tau), float(bound_sigma_m), float(bound_velocity_std))
+        self._bound_cache: dict = {}
 
     def check(self, scenario, sensor, estimators: dict) -> None:
         if not hasattr(sensor, "is_active"):
@@ -68,14 +82,55 @@ class SonarStudy:
         # 100 runs x 10 001 steps: the full float64 covariance would be ~200 MB per variant
         return schemas.estimate_to_frame(estimate, STATE_NAMES, compact_covariance=True)
 
-    @staticmethod
-    def per_step_metrics(truth: Truth, estimate, sensor) -> dict[str, np.ndarray]:
+    def per_step_metrics(self, truth: Truth, estimate, sensor) -> dict[str, np.ndarray]:
         out = per_step_metrics(truth, estimate)
         err = estimate.state[..., :2] - truth.state[:, :, 0, :2]
         with np.errstate(invalid="ignore"), _quiet_nanmean():
             out["position_rmse_x"] = np.sqrt(np.nanmean(err[..., 0] ** 2, axis=0))
             out["position_rmse_y"] = np.sqrt(np.nanmean(err[..., 1] ** 2, axis=0))
+            if self.bound_model is not None:
+                bound = self.position_bound(truth, sensor)
+                out["position_bound"] = bound
+                out["position_rmse_over_bound"] = out["position_rmse"] / bound
+                out["position_bound_model"] = self.position_bound(truth, sensor, "model")
         return out
+
+    def position_bound(self, truth: Truth, sensor, model: str = "clairvoyant") -> np.ndarray:
+        """sqrt(trace) of the position block of the PCRLB (filters.bounds) along the true trajectory
+        with the sonar's schedule; (K,) [m]. "clairvoyant": the truth's own dynamics, deterministic
+        (no process noise; own-ship and target accelerations known), a bound for any estimator of
+        this truth; "model": the trackers' 6-state Singer model (random target acceleration), which
+        a deterministic truth lets a tracker undercut. Computed once per truth and sensor."""
+        key = (id(truth), id(sensor), model)
+        if key not in self._bound_cache:
+            self._bound_cache[key] = self._compute_bound(truth, sensor, model)
+        return self._bound_cache[key]
+
+    def _compute_bound(self, truth: Truth, sensor, model: str) -> np.ndarray:
+        tau, sigma_m, velocity_std = self.bound_model
+        dt = float(truth.time[1] - truth.time[0])
+        if model == "model":
+            F, _, Q = relative_motion_model(dt, tau, sigma_m)
+        else:                                   # known inputs move the mean only: CV, Q = 0
+            F, Q = np.kron(np.array([[1.0, dt], [0.0, 1.0]]), np.eye(2)), np.zeros((4, 4))
+        n = F.shape[0]
+        position = truth.state[:, :, 0, :2]                                                  # (R, K, 2)
+        d_beta, d_r = jacobian_rows(position)
+        active = np.asarray(sensor.is_active(truth.time), dtype=float)                      # (K,)
+        rows = (d_beta[..., :, None] * d_beta[..., None, :] / sensor.bearing_std**2
+                + active[None, :, None, None] * d_r[..., :, None] * d_r[..., None, :] / sensor.range_std**2)
+        information = np.zeros(rows.shape[1:2] + (n, n))
+        information[:, :2, :2] = rows.mean(axis=0)                                          # E over the runs
+        # the trackers' start: the converted first (active) measurement, velocity and acceleration priors
+        beta, r = np.arctan2(position[:, 0, 0], position[:, 0, 1]), np.hypot(position[:, 0, 0], position[:, 0, 1])
+        J = np.stack([np.stack([r * np.cos(beta), np.sin(beta)], -1), np.stack([-r * np.sin(beta), np.cos(beta)], -1)], -2)
+        initial = np.zeros((n, n))
+        initial[:2, :2] = (J @ np.diag([sensor.bearing_std**2, sensor.range_std**2]) @ np.swapaxes(J, -1, -2)).mean(0)
+        initial[2:4, 2:4] = velocity_std**2 * np.eye(2)
+        if n == 6:
+            initial[4:, 4:] = sigma_m**2 * np.eye(2)
+        bounds = posterior_crlb(F, Q, initial, information)
+        return np.sqrt(bounds[:, 0, 0] + bounds[:, 1, 1])
 
     @staticmethod
     def metric_units(names) -> dict[str, str]:
