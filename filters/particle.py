@@ -52,8 +52,8 @@ import numpy as np
 from filters.base import TrackEstimate
 
 TARGET_STATES = ("x", "y", "vx", "vy")
-STATE_NAMES = TARGET_STATES + tuple(f"b{i}_{c}" for i in range(1, 5) for c in ("x", "y", "vx", "vy"))
 BUOYS = 4
+STATE_NAMES = TARGET_STATES + tuple(f"b{i}_{c}" for i in range(1, BUOYS + 1) for c in ("x", "y", "vx", "vy"))
 LOG_2PI = float(np.log(2.0 * np.pi))
 TWO_PI = 2.0 * np.pi
 MIN_SPEED = 0.5                     # [m/s] floor of |v| in eq 5 (spec 004)
@@ -69,8 +69,13 @@ def wrap(angle: np.ndarray) -> np.ndarray:
     return angle - angle.dtype.type(TWO_PI) * np.rint(angle * angle.dtype.type(1.0 / TWO_PI))
 
 
+NOISE_GAINS = ("standard", "paper")
+
+
 def noise_gain(dt: float, form: str = "standard") -> np.ndarray:
     """Gamma (4, 2) of eq 6: position gain T^2/2 ("standard") or T/2 ("paper", as printed)."""
+    if form not in NOISE_GAINS:
+        raise ValueError(f"noise_gain: {form!r} must be one of {list(NOISE_GAINS)}")
     g = dt * dt / 2.0 if form == "standard" else dt / 2.0
     return np.array([[g, 0.0], [0.0, g], [dt, 0.0], [0.0, dt]])
 
@@ -114,7 +119,18 @@ def predicted_positions(target: np.ndarray, speed_floor_rate: float, dt: float) 
 
 
 def cv_transition(dt: float) -> np.ndarray:
+    """F_CV (4, 4) over ``dt`` for (x, y, vx, vy) (eq 3)."""
     return np.array([[1.0, 0.0, dt, 0.0], [0.0, 1.0, 0.0, dt], [0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 1.0]])
+
+
+def ct_transition(omega: float, dt: float) -> np.ndarray:
+    """F_CT(Omega) (4, 4) of eq 4 as a matrix (``coordinated_turn`` applies it to state stacks);
+    |Omega| < 1e-9 gives F_CV."""
+    if abs(omega) < 1e-9:
+        return cv_transition(dt)
+    s, c = np.sin(omega * dt), np.cos(omega * dt)
+    return np.array([[1.0, 0.0, s / omega, -(1.0 - c) / omega], [0.0, 1.0, (1.0 - c) / omega, s / omega],
+                     [0.0, 0.0, c, -s], [0.0, 0.0, s, c]])
 
 
 def bearings(state: np.ndarray, observer: np.ndarray) -> np.ndarray:

@@ -9,8 +9,9 @@ import pytest
 from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
+from filters.particle import STATE_NAMES, ct_transition
 from pipeline.data import Truth
-from pipeline.scenarios.sonobuoy import STATE_NAMES, SonobuoyField, ct_transition
+from pipeline.scenarios.sonobuoy import SonobuoyField
 from pipeline.schemas import detections_from_frame, detections_to_frame, truth_from_frame, truth_to_frame
 from pipeline.seeding import run_generators
 from pipeline.sensors.sonobuoy import SonobuoyBearings

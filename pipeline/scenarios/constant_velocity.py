@@ -9,11 +9,9 @@ from typing import Sequence
 
 import numpy as np
 
-from filters.bias import dcwna_process_noise  # seed 002 eq 43, shared with the filters
+from filters.bias import STATE_NAMES, dcwna_process_noise  # seed 002 eqs 5, 43, shared with the filters
 from pipeline.data import Truth
 from pipeline.seeding import run_generators
-
-STATE_NAMES = ("x", "y", "vx", "vy")
 
 
 class ConstantVelocityGrid:

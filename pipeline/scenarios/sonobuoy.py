@@ -12,16 +12,14 @@ from typing import Sequence
 
 import numpy as np
 
+# eqs 3, 4, 6 and the state layout, shared with the filters
+from filters.particle import BUOYS, NOISE_GAINS, STATE_NAMES, ct_transition, cv_transition, noise_gain
 from pipeline.checks import non_negative, positive, whole_steps
 from pipeline.data import Truth
 from pipeline.seeding import run_generators
 
-BUOYS = 4
-STATE_NAMES = ("x", "y", "vx", "vy") + tuple(
-    f"b{i}_{name}" for i in range(1, BUOYS + 1) for name in ("x", "y", "vx", "vy"))
 CV, COUNTER_CLOCKWISE, CLOCKWISE = 1, 2, 3      # the seed's mode numbers by its FORMULA (see SonobuoyField)
 TURN_DIRECTIONS = {"right": -1.0, "left": 1.0}  # sign of Omega (Omega > 0 turns counter-clockwise)
-NOISE_GAINS = ("standard", "paper")
 
 
 def _finite_array(key: str, value: object, shape: tuple[int, ...], what: str) -> np.ndarray:
@@ -34,34 +32,6 @@ def _finite_array(key: str, value: object, shape: tuple[int, ...], what: str) ->
     return array
 
 
-def cv_transition(dt: float) -> np.ndarray:
-    """F_CV over ``dt`` [s] for (x, y, vx, vy) (literature notes 6.1)."""
-    return np.array([[1.0, 0.0, dt, 0.0], [0.0, 1.0, 0.0, dt], [0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 1.0]])
-
-
-def ct_transition(omega: float, dt: float) -> np.ndarray:
-    """The exact coordinated-turn transition F_CT(Omega) over ``dt`` [s] for (x, y, vx, vy)
-    (seed eq 4; literature notes 6.1): Omega [rad/s] > 0 turns the velocity counter-clockwise
-    (x = east, y = north); |Omega| < 1e-9 gives the limit F_CV."""
-    if abs(omega) < 1e-9:
-        return cv_transition(dt)
-    s, c = np.sin(omega * dt), np.cos(omega * dt)
-    return np.array([[1.0, 0.0, s / omega, -(1.0 - c) / omega],
-                     [0.0, 1.0, (1.0 - c) / omega, s / omega],
-                     [0.0, 0.0, c, -s],
-                     [0.0, 0.0, s, c]])
-
-
-def process_noise_gain(dt: float, kind: str = "standard") -> np.ndarray:
-    """Gamma (4, 2) = [[g, 0], [0, g], [T, 0], [0, T]] mapping an acceleration noise (2,) onto
-    (x, y, vx, vy) over one step T = ``dt``: g = T^2/2 for "standard" (the discrete white-noise
-    acceleration gain, literature notes 6.1's correction) or T/2 for "paper" (seed eq 6 as printed)."""
-    if not isinstance(kind, str) or kind not in NOISE_GAINS:
-        raise ValueError(f"noise_gain: {kind!r} must be one of {list(NOISE_GAINS)}")
-    g = dt * dt / 2.0 if kind == "standard" else dt / 2.0
-    return np.array([[g, 0.0], [0.0, g], [dt, 0.0], [0.0, dt]])
-
-
 class SonobuoyField:
     """A target (no process noise) and four buoys drifting with the current (with process noise),
     sampled at t = 0, dt, ..., duration (scan 0 is the start; the sensor measures from scan 1).
@@ -71,14 +41,14 @@ class SonobuoyField:
     acceleration ``target_turn_acceleration`` until the end: turn rate |Omega| = accel / speed
     (seed eq 5; the speed stays |target_velocity|), Omega < 0 (clockwise: the heading from north
     increases) for ``turn_direction`` "right", Omega > 0 for "left" (spec 004 cases 2 and 2B: right
-    from 800 s at 0.005 m/s^2). Each step is the exact transition F_CT(Omega) (``ct_transition``);
+    from 800 s at 0.005 m/s^2). Each step is the exact transition F_CT(Omega) (``filters.particle.ct_transition``);
     a step that straddles the turn start is F_CT(Omega) over the part after it times F_CV over the
     part before it, so the start need not be on the scan grid. No process noise (spec 004: "target
     without process noise").
 
     Buoys: buoy i starts at ``buoy_positions[i]`` with velocity ``buoy_drift`` and follows
     b(k+1) = F_CV b(k) + Gamma v_i(k), v_i(k) ~ N(0, buoy_sigma^2 I2) (seed eqs 3, 6) with Gamma
-    from ``process_noise_gain(dt, noise_gain)``. The draws v are ``run_generators(seed, "scenario", R)``,
+    from ``filters.particle.noise_gain(dt, noise_gain)``. The draws v are ``run_generators(seed, "scenario", R)``,
     standard_normal((K-1, 4, 2)) per run (step, buoy, axis), taken even when buoy_sigma = 0, so
     run r depends only on (seed, r).
 
@@ -186,7 +156,7 @@ class SonobuoyField:
         target, mode = self.target_track()
         noise = np.stack([g.standard_normal((K - 1, BUOYS, 2)) for g in run_generators(seed, "scenario", R)])
         w = self.buoy_sigma * noise                                                # (R, K-1, 4, 2) [m/s^2]
-        gamma = process_noise_gain(dt, self.noise_gain)
+        gamma = noise_gain(dt, self.noise_gain)
         g_pos, g_vel = gamma[0, 0], gamma[2, 0]
         # b(k+1) = F_CV b(k) + Gamma w(k), unrolled: v(k) = v0 + g_vel sum_{j<k} w(j);
         # p(k) = p0 + sum_{j<k} (dt v(j) + g_pos w(j))

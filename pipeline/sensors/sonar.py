@@ -14,17 +14,12 @@ import numpy as np
 from pipeline.checks import non_negative
 from pipeline.data import Detections, Truth
 from pipeline.seeding import run_generators
+from pipeline.sensors.radar3d import wrap_angle
 
 MEASUREMENT_NAMES = ("bearing", "range")
 MEASUREMENT_UNITS = ("rad", "m")
 PASSIVE, ACTIVE = 0, 1          # Detections.sensor: the passive array, the active sonar
 TIME_TOLERANCE = 1e-9           # [s] a scan time this close to an interval edge counts as on it
-
-
-def wrap_angle(angle: np.ndarray) -> np.ndarray:
-    """``angle`` [rad] wrapped into (-pi, pi]."""
-    wrapped = np.mod(np.asarray(angle, dtype=float) + np.pi, 2.0 * np.pi) - np.pi      # [-pi, pi)
-    return np.where(wrapped <= -np.pi, wrapped + 2.0 * np.pi, wrapped)
 
 
 class ActivePassiveSonar:

@@ -12,11 +12,11 @@ from typing import Sequence
 
 import numpy as np
 
+from filters.particle import BUOYS, STATE_NAMES, bearings  # eqs 8-9, shared with the filters
 from pipeline.checks import non_negative
 from pipeline.data import Detections, Truth
-from pipeline.scenarios.sonobuoy import BUOYS, STATE_NAMES
 from pipeline.seeding import run_generators
-from pipeline.sensors.sonar import wrap_angle
+from pipeline.sensors.radar3d import wrap_angle
 
 MEASUREMENT_NAMES = ("bearing",)
 MEASUREMENT_UNITS = ("rad",)
@@ -32,17 +32,6 @@ def _probability(key: str, value: object) -> float:
     if not (np.isfinite(number) and 0.0 <= number <= 1.0):
         raise ValueError(f"{key}: {value!r} must be a probability in [0, 1]")
     return number
-
-
-def bearings(state: np.ndarray, observer_position: np.ndarray) -> np.ndarray:
-    """The noise-free 8 bearings h(X) [rad] in (-pi, pi] of states (..., 20) in ``STATE_NAMES``
-    order (literature notes 6.2): theta_i = atan2(x_t - x_bi, y_t - y_bi), the target from buoy i,
-    then phi_i = atan2(x_bi - x_o, y_bi - y_o), buoy i from the observer at ``observer_position``."""
-    target = state[..., None, 0:2]                                                   # (..., 1, 2)
-    buoys = state[..., 4:].reshape(*state.shape[:-1], BUOYS, 4)[..., :2]            # (..., 4, 2)
-    theta = np.arctan2(target[..., 0] - buoys[..., 0], target[..., 1] - buoys[..., 1])
-    phi = np.arctan2(buoys[..., 0] - observer_position[0], buoys[..., 1] - observer_position[1])
-    return wrap_angle(np.concatenate([theta, phi], axis=-1))
 
 
 class SonobuoyBearings:
