@@ -39,7 +39,7 @@ raw information matrix out of the solves.
 from __future__ import annotations
 
 import time as _time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Sequence
 
 import numpy as np
@@ -322,6 +322,16 @@ def add_pseudo_measurements(info: BiasInformation, z: np.ndarray, H: np.ndarray,
     return BiasInformation(information, vector, info.prior_std)
 
 
+@dataclass(frozen=True)
+class BiasState:
+    """A bias estimator's state between reports: the least-squares information, the reports
+    gathered towards an EXX time slot (radar, time, z^m, R^m, B C each), the number of radars."""
+
+    information: BiasInformation
+    slot: tuple
+    sensors: int
+
+
 # --------------------------------------------------------------------------------------------
 # The variants
 # --------------------------------------------------------------------------------------------
@@ -373,13 +383,17 @@ class LocalTracking:
         self.output_targets = None if output_targets is None else [int(t) for t in output_targets]
         self.jacobian_at = jacobian_at
 
-    # hooks of the bias estimators -------------------------------------------------------------
-    def _begin(self, reports: RadarReports) -> None:
-        self._info = None
+    # hooks of the bias estimators: the estimate travels as an explicit BiasState through run() --
+    def _begin(self, reports: RadarReports) -> "BiasState":
+        return BiasState(BiasInformation.prior(reports.runs, np.tile(self.prior_std, reports.sensors)), (),
+                         reports.sensors)
 
-    def _bias_step(self, k: int, i: int, t: float, z_converted: np.ndarray, noise: np.ndarray,
-                   bias_columns: np.ndarray, tracks: list[LocalTracks | None], last_time: np.ndarray) -> None:
-        """Update the bias estimate with report k of radar i (before its local update)."""
+    def _bias_step(self, state: "BiasState", i: int, t: float, z_converted: np.ndarray, noise: np.ndarray,
+                   bias_columns: np.ndarray, tracks: list[LocalTracks | None], last_time: np.ndarray
+                   ) -> tuple["BiasState", bool]:
+        """The state after report k of radar i (before its local update), and whether the bias
+        estimate changed."""
+        return state, False
 
     # -------------------------------------------------------------------------------------------
     def _selected(self, T: int) -> np.ndarray:
@@ -407,7 +421,7 @@ class LocalTracking:
             for s in range(S):
                 tracks[s] = LocalTracks(reports.start.state[:, s].astype(float), P0.copy(), np.zeros((R, T, 4, 4)))
             last_time[:] = reports.start.time
-        self._begin(reports)
+        state = self._begin(reports)
         n = 4 * S
         bias = np.zeros((R, n))
         bias_cov = np.broadcast_to(np.diag(np.tile(self.prior_std, S) ** 2), (R, n, n)).copy()
@@ -433,8 +447,9 @@ class LocalTracking:
             B, BC = bias_jacobian(*where)
             noise = converted_covariance(B, reports.noise_std[i])       # eq 6
             if self.estimates_bias:
-                if self._bias_step(k, i, t, z_converted, noise, BC, tracks, last_time):
-                    bias, bias_cov = self._info.estimate()
+                state, changed = self._bias_step(state, i, t, z_converted, noise, BC, tracks, last_time)
+                if changed:
+                    bias, bias_cov = state.information.estimate()
                 out_bias[:, k] = bias
                 out_bias_cov[:, k] = bias_cov
             if predicted is not None:
@@ -476,20 +491,16 @@ class PseudoBiasRegistration(LocalTracking):
         super().__init__(name=name, **kwargs)
         self.correlated_pseudo_noise = bool(correlated_pseudo_noise)
 
-    def _begin(self, reports: RadarReports) -> None:
-        self._info = BiasInformation.prior(reports.runs, np.tile(self.prior_std, reports.sensors))
-
-    def _bias_step(self, k, i, t, z_converted, noise, bias_columns, tracks, last_time) -> bool:
+    def _bias_step(self, state, i, t, z_converted, noise, bias_columns, tracks, last_time):
         if tracks[i] is None and self.start == "two_point":
-            return False                         # the reporting radar has no track yet
+            return state, False                  # the reporting radar has no track yet
         others = [j for j in range(len(tracks)) if j != i and tracks[j] is not None]
         if not others:
-            return False
+            return state, False
         z, H, Rb = pseudo_bias_measurements(i, z_converted, noise, bias_columns, [tracks[j] for j in others],
                                             others, t - last_time[others], self.process_noise_density,
                                             len(tracks), self.correlated_pseudo_noise)
-        self._info = add_pseudo_measurements(self._info, z, H, Rb)
-        return True
+        return replace(state, information=add_pseudo_measurements(state.information, z, H, Rb)), True
 
 
 def pseudo_bias_measurements(i: int, z_converted: np.ndarray, noise: np.ndarray, bias_columns: np.ndarray,
@@ -547,22 +558,14 @@ class EXXRegistration(LocalTracking):
     def __init__(self, name: str = "exx", **kwargs) -> None:
         super().__init__(name=name, **kwargs)
 
-    def _begin(self, reports: RadarReports) -> None:
-        self._info = BiasInformation.prior(reports.runs, np.tile(self.prior_std, reports.sensors))
-        self._slot: list[tuple[int, float, np.ndarray, np.ndarray, np.ndarray]] = []
-        self._sensors = reports.sensors
-
-    def _bias_step(self, k, i, t, z_converted, noise, bias_columns, tracks, last_time) -> bool:
-        self._slot.append((i, t, z_converted, noise, bias_columns))
-        if len(self._slot) < 3:
-            return False
-        pseudo = exx_pseudo_measurement(self._slot, self.process_noise_density, self._sensors)
+    def _bias_step(self, state, i, t, z_converted, noise, bias_columns, tracks, last_time):
+        slot = state.slot + ((i, t, z_converted, noise, bias_columns),)
+        if len(slot) < 3:
+            return replace(state, slot=slot), False
+        pseudo = exx_pseudo_measurement(slot, self.process_noise_density, state.sensors)
         if pseudo is None:
-            self._slot.pop(0)                 # not a proper slot: slide by one report
-            return False
-        self._slot = []
-        self._info = add_pseudo_measurements(self._info, *pseudo)
-        return True
+            return replace(state, slot=slot[1:]), False   # not a proper slot: slide by one report
+        return replace(state, information=add_pseudo_measurements(state.information, *pseudo), slot=()), True
 
 
 def exx_process_noise(t1: float, t2: float, t_b: float, density: float) -> float:

@@ -159,23 +159,17 @@ def nonlinear_update(x: np.ndarray, P: np.ndarray, z: np.ndarray, active: bool, 
     n = x.shape[-1]
     position = x[..., :2]
     beta_hat, r_hat = bearing_range(position)
-    d_beta, d_r = jacobian_rows(position)
-    if active:
-        H = _pad(np.stack([d_beta, d_r], -2), n)
-        residual = np.stack([wrap(z[..., 0] - beta_hat), z[..., 1] - r_hat], -1)
-        R = np.diag([bearing_std**2, range_std**2])
-    else:
-        H = _pad(d_beta[..., None, :], n)
-        residual = wrap(z[..., 0] - beta_hat)[..., None]
-        R = np.array([[bearing_std**2]])
+    d_beta, d_r = jacobian_rows(position)                      # active: bearing and range (eqs 20-24)
+    H = _pad(np.stack([d_beta, d_r], -2), n)
+    residual = np.stack([wrap(z[..., 0] - beta_hat), z[..., 1] - r_hat], -1)
+    R = np.diag([bearing_std**2, range_std**2])
     PHt = P @ np.swapaxes(H, -1, -2)
     S = H @ PHt + R
     gain = np.swapaxes(np.linalg.solve(S, np.swapaxes(PHt, -1, -2)), -1, -2)
     x_new = x + np.einsum("rij,rj->ri", gain, residual)
     if modified:
-        g_beta = bearing_g_row(position, z[..., 0], bearing_form, clamp)
-        rows = [g_beta, range_g_row(position, z[..., 0])] if active else [g_beta]
-        G = _pad(np.stack(rows, -2), n)
+        G = _pad(np.stack([bearing_g_row(position, z[..., 0], bearing_form, clamp),
+                           range_g_row(position, z[..., 0])], -2), n)
     else:
         G = H
     A = np.broadcast_to(np.eye(n), P.shape) - gain @ G

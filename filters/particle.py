@@ -560,9 +560,9 @@ class BearingsEKF(_ModelParameters):
     """EKF on the same 20 states with one CV target model (notes 6.4): Joseph update on the received
     components; in clutter the moment-matched variance (1 - p_c) s^2 + p_c s_c^2 per component."""
 
-    def __init__(self, name: str = "EKF", max_acceleration: float = 0.0, target_sigma: float = 0.05,
-                 buoy_sigma: float = 0.0005, noise_gain: str = "standard") -> None:
-        super().__init__(name, max_acceleration, target_sigma, buoy_sigma, noise_gain)
+    def __init__(self, name: str = "EKF", target_sigma: float = 0.05, buoy_sigma: float = 0.0005,
+                 noise_gain: str = "standard") -> None:
+        super().__init__(name, 0.0, target_sigma, buoy_sigma, noise_gain)       # one CV model: no a_m
 
     def run(self, reports: BuoyReports) -> TrackEstimate:
         started = _time.perf_counter()
@@ -574,12 +574,10 @@ class BearingsEKF(_ModelParameters):
         states = np.full((R, K, 20), np.nan)
         covariances = np.full((R, K, 20, 20), np.nan)
         states[:, 0], covariances[:, 0] = x, P
-        F_block = cv_transition(1.0)
         observer = np.asarray(reports.observer, dtype=float)
         for k in range(1, K):
             dt = float(reports.time[k] - reports.time[k - 1])
-            F_block = cv_transition(dt)
-            F = np.kron(np.eye(5), F_block)
+            F = np.kron(np.eye(5), cv_transition(dt))
             x = x @ F.T
             P = F @ P @ F.T + self._process_noise(dt)
             z = reports.z[:, k]
