@@ -34,11 +34,11 @@ def _metrics(cfg, study, truth, reports, sensor, variants):
 
 
 def test_case1b_the_ammpf_finds_the_target_where_the_ekf_wanders():
-    """Spec: EKF median error > 5 km somewhere in 300-600 s; AMMPF median < 1.5 km by 300 s (at 3000
-    particles; measured 1036 m at 100 runs). Here 4 runs and 1000 particles: the ordering, loosely."""
-    _, m = _run("sonobuoy_case1b", 4, ("ammpf", "ekf"), "scenario.duration=600", "target_model.particles=1000")
+    """Spec: EKF median error > 5 km somewhere in 300-600 s; AMMPF median < 1.5 km by 300 s. The
+    spec's 3000 particles at 4 runs, cut at 600 s (measured at 100 runs: 978 m at 300 s, EKF peak 7761 m)."""
+    _, m = _run("sonobuoy_case1b", 4, ("ammpf", "ekf"), "scenario.duration=600")
     ammpf, ekf = m["ammpf"]["position_median_error"], m["ekf"]["position_median_error"]
-    assert ammpf[60] < 2000.0, ammpf[60]
+    assert ammpf[60] < 1500.0, ammpf[60]
     assert ekf[60:121].max() > 3000.0 and ekf[60:121].max() > 3 * ammpf[60:121].max(), (ekf[60:121].max(),
                                                                                          ammpf[60:121].max())
 

@@ -57,7 +57,7 @@ class SonarStudy:
         self.bump_window = float(bump_window)
         self.bound_model = None if bound_tau is None or bound_sigma_m is None else (
             float(bound_tau), float(bound_sigma_m), float(bound_velocity_std))
-        self._bound_cache: dict = {}
+        self._bound_cache: list = []
 
     def check(self, scenario, sensor, estimators: dict) -> None:
         if not hasattr(sensor, "is_active"):
@@ -101,10 +101,13 @@ class SonarStudy:
         (no process noise; own-ship and target accelerations known), a bound for any estimator of
         this truth; "model": the trackers' 6-state Singer model (random target acceleration), which
         a deterministic truth lets a tracker undercut. Computed once per truth and sensor."""
-        key = (id(truth), id(sensor), model)
-        if key not in self._bound_cache:
-            self._bound_cache[key] = self._compute_bound(truth, sensor, model)
-        return self._bound_cache[key]
+        for cached_truth, cached_sensor, cached_model, bound in self._bound_cache:
+            if cached_truth is truth and cached_sensor is sensor and cached_model == model:
+                return bound
+        bound = self._compute_bound(truth, sensor, model)
+        # holds the objects themselves (not their ids, which Python may reuse) and only this truth's
+        self._bound_cache = [c for c in self._bound_cache if c[0] is truth] + [(truth, sensor, model, bound)]
+        return bound
 
     def _compute_bound(self, truth: Truth, sensor, model: str) -> np.ndarray:
         tau, sigma_m, velocity_std = self.bound_model
