@@ -23,9 +23,9 @@ from omegaconf import DictConfig, OmegaConf
 from pipeline import schemas
 from pipeline.config import build, flatten, selected_variants, validate
 from pipeline.errors import ConfigError
-from pipeline.stages.evaluate import Window, metrics_frame, per_step_metrics, summary_rows
+from pipeline.stages.evaluate import Window, metrics_frame, summary_rows
 from pipeline.stages.report import ReportContext, format_summary
-from pipeline.stages.track import measurement_series
+from pipeline.stages.track import SingleTargetStudy
 from pipeline.store import StageCache, atomic_write_parquet, atomic_write_text, package_version, publish, stable_hash, stage_key
 
 log = logging.getLogger("pipeline")
@@ -186,12 +186,11 @@ def run_experiment(cfg: DictConfig, ctx: RunContext) -> RunOutcome:
     variants = selected_variants(cfg)
     log.info("experiment %s: %d Monte Carlo runs, seed %d, variants %s -> %s", experiment, runs, seed, variants, ctx.run_dir)
 
-    study = build(cfg.study, "study") if cfg.get("study") is not None else None
+    study = build(cfg.study, "study") if cfg.get("study") is not None else _default_study(cfg)
     scenario = build(cfg.scenario, "scenario")
     sensor = build(cfg.sensors, "sensors")
     estimators = {v: build(cfg.filters[v], f"filters.{v}") for v in variants}
-    if study is not None:
-        study.check(scenario, sensor, estimators)
+    study.check(scenario, sensor, estimators)
     cache = StageCache(ctx.artifacts / "cache", enabled=bool(cfg.cache.enabled))
     provenance = {"mtt.experiment": experiment, "mtt.config_hash": config_hash, "mtt.package_version": package_version()}
     stages = _Stages(cache, ctx, provenance)
@@ -203,14 +202,9 @@ def run_experiment(cfg: DictConfig, ctx: RunContext) -> RunOutcome:
     measure_key = stage_key("measure", {"sensors": resolved["sensors"], "seed": seed}, (scenario_key,))
     detections, _ = stages.run("measure", measure_key, "detections", lambda: sensor.measure(truth, seed),
                                schemas.detections_to_frame, Path("detections.parquet"), f"{runs} runs x {K} scans")
-    if study is None:
-        track_input = measurement_series(detections, sensor_position=getattr(sensor, "position", None))
-        table, to_frame = "estimates", (lambda e: schemas.estimate_to_frame(e, truth.state_names))
-        study_node = {}
-    else:                                  # a study with its own filter input and estimate table
-        track_input = study.track_input(truth, detections, sensor, seed)
-        table, to_frame = study.estimate_table, study.estimate_to_frame
-        study_node = {"study": resolved["study"]}
+    track_input = study.track_input(truth, detections, sensor, seed)
+    # the adapter's node is part of what the filters see (the default adapter has none)
+    study_node = {"study": resolved["study"]} if cfg.get("study") is not None else {}
 
     estimates: dict[str, Any] = {}
     display: dict[str, str] = {}
@@ -219,7 +213,8 @@ def run_experiment(cfg: DictConfig, ctx: RunContext) -> RunOutcome:
         est_key = stage_key("track", {"filter": resolved["filters"][v], **study_node}, (measure_key,))
         estimator = estimators[v]
         estimate, hit = stages.run(
-            "track", est_key, table, lambda e=estimator: e.run(track_input), to_frame,
+            "track", est_key, study.estimate_table, lambda e=estimator: e.run(track_input),
+            lambda e: study.estimate_to_frame(e, truth),
             Path("estimates") / f"{v}.parquet", f"{getattr(estimator, 'name', v)}: {runs} runs x {K} scans")
         if not hit:
             per_step = getattr(estimate, "extras", {}).get("models_evaluated")
@@ -230,12 +225,8 @@ def run_experiment(cfg: DictConfig, ctx: RunContext) -> RunOutcome:
         cached[v] = hit
 
     started = time.perf_counter()
-    if study is None:
-        per_variant = {v: (display[v], per_step_metrics(truth, estimates[v])) for v in variants}
-        units = None
-    else:
-        per_variant = {v: (display[v], study.per_step_metrics(truth, estimates[v], sensor)) for v in variants}
-        units = study.metric_units({m for _, metrics in per_variant.values() for m in metrics})
+    per_variant = {v: (display[v], study.per_step_metrics(truth, estimates[v], sensor)) for v in variants}
+    units = study.metric_units({m for _, metrics in per_variant.values() for m in metrics})
     windows = _windows(cfg, "windows", K)
     count_windows = _windows(cfg, "count_windows", K)
     reached = None
@@ -264,15 +255,11 @@ def run_experiment(cfg: DictConfig, ctx: RunContext) -> RunOutcome:
     if cfg.record.enabled:
         started = time.perf_counter()
         record_runs = list(cfg.record.runs) if not isinstance(cfg.record.runs, int) else [cfg.record.runs]
-        if study is not None:
-            study.record(ctx.run_dir / "recording.rrd", experiment=experiment, truth=truth, detections=detections,
-                         estimates=estimates, display_names=display, metrics=metrics, record_runs=record_runs,
-                         sensor=sensor, config_text=OmegaConf.to_yaml(cfg, resolve=True),
-                         description=str(cfg.get("description", "")),
-                         context={"estimators": estimators, "track_input": track_input, "seed": seed})
-        else:
-            _record_single_target(cfg, ctx, experiment, truth, detections, estimates, display, metrics, record_runs,
-                                  sensor)
+        study.record(ctx.run_dir / "recording.rrd", experiment=experiment, truth=truth, detections=detections,
+                     estimates=estimates, display_names=display, metrics=metrics, record_runs=record_runs,
+                     sensor=sensor, config_text=OmegaConf.to_yaml(cfg, resolve=True),
+                     description=str(cfg.get("description", "")),
+                     context={"estimators": estimators, "track_input": track_input, "seed": seed})
         log.info("[record] recording.rrd (runs %s), %.2f s", record_runs, time.perf_counter() - started)
 
     text = format_summary(summary, experiment, runs)
@@ -285,20 +272,11 @@ def run_experiment(cfg: DictConfig, ctx: RunContext) -> RunOutcome:
     return RunOutcome(summary, metrics, text)
 
 
-def _record_single_target(cfg: DictConfig, ctx: RunContext, experiment: str, truth, detections, estimates,
-                          display, metrics, record_runs, sensor) -> None:
-    from pipeline.recording import write_recording
-    models_node = cfg.get("models")
-    # a sensor with a position (e.g. the 3-D radar: polar detections relative to it) tells the
-    # recording where it sits
-    where = getattr(sensor, "position", None)
-    located = {} if where is None else {"sensor_position": [float(v) for v in where]}
-    write_recording(
-        ctx.run_dir / "recording.rrd", experiment=experiment, truth=truth, detections=detections,
-        estimates=estimates, display_names=display, metrics=metrics, record_runs=record_runs,
-        model_names=list(models_node.accelerations.keys()) if models_node and "accelerations" in models_node else None,
-        group_names=list(models_node.groups.keys()) if models_node and "groups" in models_node else None,
-        config_text=OmegaConf.to_yaml(cfg, resolve=True), description=str(cfg.get("description", "")), **located)
+def _default_study(cfg: DictConfig) -> SingleTargetStudy:
+    models = cfg.get("models")
+    return SingleTargetStudy(
+        model_names=list(models.accelerations.keys()) if models and "accelerations" in models else None,
+        group_names=list(models.groups.keys()) if models and "groups" in models else None)
 
 
 def describe_exception(exc: BaseException) -> tuple[str, str]:

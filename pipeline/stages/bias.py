@@ -108,7 +108,7 @@ class BiasRegistrationStudy:
         return RadarReports(detections.time, detections.sensor.astype(int), detections.z, positions, noise_std, start)
 
     @staticmethod
-    def estimate_to_frame(result: BiasRegistrationResult):
+    def estimate_to_frame(result: BiasRegistrationResult, truth=None):
         return schemas.bias_estimates_to_frame(result)
 
     # ---- evaluate --------------------------------------------------------------------------

@@ -78,7 +78,7 @@ class SonarStudy:
                             float(sensor.bearing_std), float(sensor.range_std))
 
     @staticmethod
-    def estimate_to_frame(estimate):
+    def estimate_to_frame(estimate, truth=None):
         # 100 runs x 10 001 steps: the full float64 covariance would be ~200 MB per variant
         return schemas.estimate_to_frame(estimate, STATE_NAMES, compact_covariance=True)
 

@@ -97,7 +97,7 @@ class SonobuoyStudy:
                            float(sensor.clutter_probability), prior_mean, self.prior_std, int(seed))
 
     @staticmethod
-    def estimate_to_frame(estimate):
+    def estimate_to_frame(estimate, truth=None):
         return schemas.estimate_to_frame(estimate, STATE_NAMES, compact_covariance=True)
 
     @staticmethod
