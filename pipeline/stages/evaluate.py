@@ -97,6 +97,38 @@ def per_step_metrics(truth: Truth, estimate: TrackEstimate) -> dict[str, np.ndar
     return out
 
 
+CONSISTENCY_PROBABILITY = 0.95
+
+
+def consistency_metrics(name: str, values: np.ndarray, dof: np.ndarray | int,
+                        probability: float = CONSISTENCY_PROBABILITY) -> dict[str, np.ndarray]:
+    """Run-averaged NEES or NIS with its two-sided chi-square acceptance band, per step.
+
+    ``values`` (R, K): each run's normalised squared error at each step (NaN where the run has
+    none: not started, no measurement, diverged); ``dof`` (R, K) or a scalar: its chi-square
+    degrees of freedom (the state or measurement dimension, which may change per step).
+
+    Returns ``{name}`` (K,) the mean over the runs that have a value, and ``{name}_lower`` /
+    ``{name}_upper`` the ``probability`` band of that mean for a consistent filter (Bar-Shalom,
+    Li & Kirubarajan 2001, 5.4.2): with N valid runs whose dofs sum to D, the sum of the N values
+    is chi-square(D), so the mean lies in [chi2.ppf(a/2, D), chi2.ppf(1 - a/2, D)] / N with
+    probability 1 - a. NaN where no run has a value.
+    """
+    from scipy.stats import chi2
+
+    values = np.asarray(values, dtype=float)
+    valid = np.isfinite(values)
+    dofs = np.broadcast_to(np.asarray(dof, dtype=float), values.shape)
+    counts = valid.sum(axis=0)
+    total_dof = np.where(valid, dofs, 0.0).sum(axis=0)
+    tail = 0.5 * (1.0 - probability)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean = np.where(counts > 0, np.where(valid, values, 0.0).sum(axis=0) / np.maximum(counts, 1), np.nan)
+        lower = np.where(counts > 0, chi2.ppf(tail, np.maximum(total_dof, 1e-12)) / np.maximum(counts, 1), np.nan)
+        upper = np.where(counts > 0, chi2.ppf(1.0 - tail, np.maximum(total_dof, 1e-12)) / np.maximum(counts, 1), np.nan)
+    return {name: mean, f"{name}_lower": lower, f"{name}_upper": upper}
+
+
 def _count(flags: np.ndarray) -> np.ndarray:
     """(R, K) 0/1 flags (NaN counts as 0) -> (K,) number of runs flagged at each step."""
     values = np.asarray(flags, dtype=float)
