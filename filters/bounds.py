@@ -23,16 +23,26 @@ import numpy as np
 def posterior_crlb(F: np.ndarray, Q: np.ndarray, initial: np.ndarray, information: np.ndarray) -> np.ndarray:
     """Bounds B (K, n, n) for scans 0..K-1.
 
-    F, Q (n, n) the dynamics (the same every step); initial (n, n) the prior covariance at scan 0
-    after its own measurement (B(0)); information (K, n, n) the expected measurement information
-    E[H' R^-1 H] at each scan (scan 0's is not used: ``initial`` already holds it).
+    F, Q the dynamics from scan k-1 to k: (n, n) the same every step, or (K, n, n) per step (entry
+    k moves scan k-1 to k; entry 0 is not used), e.g. a known (clairvoyant) mode sequence or an
+    uneven scan interval; initial (n, n) the prior covariance at scan 0 after its own measurement
+    (B(0)); information (K, n, n) the expected measurement information E[H' R^-1 H] at each scan
+    (scan 0's is not used: ``initial`` already holds it).
     """
-    K, n = information.shape[0], F.shape[0]
+    K = information.shape[0]
+    F = np.asarray(F, dtype=float)
+    Q = np.asarray(Q, dtype=float)
+    n = F.shape[-1]
+    for name, value in (("F", F), ("Q", Q)):
+        if value.shape not in ((n, n), (K, n, n)):
+            raise ValueError(f"posterior_crlb: {name} has shape {value.shape}; expected ({n}, {n}) or ({K}, {n}, {n}).")
+    F_at = (lambda k: F[k]) if F.ndim == 3 else (lambda k: F)
+    Q_at = (lambda k: Q[k]) if Q.ndim == 3 else (lambda k: Q)
     bounds = np.empty((K, n, n))
     B = np.asarray(initial, dtype=float)
     bounds[0] = B
     for k in range(1, K):
-        predicted = F @ B @ F.T + Q
+        predicted = F_at(k) @ B @ F_at(k).T + Q_at(k)
         B = np.linalg.inv(np.linalg.inv(predicted) + information[k])
         B = 0.5 * (B + B.T)
         bounds[k] = B
