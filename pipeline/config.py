@@ -7,7 +7,11 @@ checked here before any stage runs.
 
 from __future__ import annotations
 
+import collections.abc
+import inspect
 import json
+import types
+import typing
 from typing import Any
 
 from hydra.errors import InstantiationException
@@ -98,7 +102,13 @@ def _check_windows(cfg: DictConfig, key: str) -> dict:
 
 
 def build(node: DictConfig, key: str) -> Any:
-    """instantiate() a config node; a constructor's refusal becomes a ConfigError naming the key."""
+    """instantiate() a config node; a constructor's refusal becomes a ConfigError naming the key.
+
+    Before anything is built, every value is checked against its constructor's type annotation
+    (``check_types``), so a wrong type or an unknown key is refused with the leaf's dotted key,
+    the value and what is allowed, instead of failing deep inside numpy.
+    """
+    check_types(node, key)
     try:
         return instantiate(node, _convert_="all")
     except InstantiationException as exc:
@@ -109,6 +119,122 @@ def build(node: DictConfig, key: str) -> Any:
         target = node.get("_target_")
         raise ConfigError(f"{key}: {message} (while building {target}; fix the value under '{key}' "
                           f"in the experiment config or on the command line).") from None
+
+
+def check_types(node: Any, key: str) -> None:
+    """Check a ``_target_`` node's keys and values against its constructor's signature (recursively
+    into nested ``_target_`` nodes). Unannotated parameters and types other than numbers, bools,
+    strings, Literals, None-unions, sequences and mappings are left to the constructor."""
+    if not isinstance(node, DictConfig) or "_target_" not in node:
+        return
+    target = node.get("_target_")
+    parameters, hints = _signature(target, key)
+    if parameters is None:
+        return
+    values = OmegaConf.to_container(node, resolve=True)
+    takes_any = any(p.kind is inspect.Parameter.VAR_KEYWORD for p in parameters.values())
+    for name, value in values.items():
+        if name.startswith("_"):
+            continue
+        where = f"{key}.{name}"
+        if name not in parameters:
+            if takes_any:
+                continue
+            allowed = sorted(n for n, p in parameters.items() if p.kind in (inspect.Parameter.POSITIONAL_OR_KEYWORD,
+                                                                            inspect.Parameter.KEYWORD_ONLY))
+            raise ConfigError(f"{where}: {value!r} is not a parameter of {target}; it takes {allowed}. Remove the "
+                              f"key or fix its spelling.")
+        if isinstance(node.get(name), DictConfig) and "_target_" in node.get(name):
+            check_types(node.get(name), where)
+            continue
+        hint = hints.get(name)
+        problem = None if hint is None else _type_problem(value, hint)
+        if problem:
+            raise ConfigError(f"{where}: {_short(value)} is not allowed; it must be {problem} (parameter "
+                              f"'{name}' of {target}).")
+
+
+def _signature(target: Any, key: str) -> tuple[dict[str, inspect.Parameter] | None, dict[str, Any]]:
+    """The parameters and resolved annotations of a target, following ``**kwargs`` up a class's MRO."""
+    from hydra._internal.utils import _locate
+    try:
+        obj = _locate(str(target))
+    except Exception as exc:
+        raise ConfigError(f"{key}._target_: {target!r} cannot be imported ({type(exc).__name__}); it must name a "
+                          f"class or function, e.g. filters.imm.FSIMM.") from None
+    functions = [c.__init__ for c in obj.__mro__ if "__init__" in vars(c)] if inspect.isclass(obj) else [obj]
+    parameters: dict[str, inspect.Parameter] = {}
+    hints: dict[str, Any] = {}
+    closed = False
+    for fn in functions:
+        try:
+            signature = inspect.signature(fn)
+            resolved = typing.get_type_hints(fn)
+        except (TypeError, ValueError, NameError):
+            return None, {}
+        params = [p for n, p in signature.parameters.items() if n != "self"]
+        for p in params:
+            if p.kind in (inspect.Parameter.POSITIONAL_OR_KEYWORD, inspect.Parameter.KEYWORD_ONLY):
+                parameters.setdefault(p.name, p)
+                if p.name in resolved:
+                    hints.setdefault(p.name, resolved[p.name])
+        if not any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params):
+            closed = True
+            break
+    if not closed:
+        parameters["**"] = inspect.Parameter("kwargs", inspect.Parameter.VAR_KEYWORD)
+    return parameters, hints
+
+
+def _short(value: Any) -> str:
+    text = repr(value)
+    return text if len(text) <= 80 else text[:77] + "..."
+
+
+def _type_problem(value: Any, hint: Any) -> str | None:
+    """None when ``value`` fits ``hint``; else what is allowed, in words."""
+    origin = typing.get_origin(hint)
+    args = typing.get_args(hint)
+    if hint is Any or hint is inspect.Parameter.empty:
+        return None
+    if origin in (typing.Union, types.UnionType):
+        problems = [_type_problem(value, a) for a in args]
+        if any(p is None for p in problems):
+            return None
+        return " or ".join(dict.fromkeys(p for p in problems if p))
+    if hint is type(None):
+        return None if value is None else "null"
+    if origin is typing.Literal:
+        return None if value in args else f"one of {list(args)}"
+    if hint is bool:
+        return None if isinstance(value, bool) else "true or false"
+    if hint is int:
+        return None if _is_int(value) else "an integer"
+    if hint is float:
+        return None if isinstance(value, (int, float)) and not isinstance(value, bool) else "a number"
+    if hint is str:
+        return None if isinstance(value, str) else "a string"
+    if origin in (list, tuple, collections.abc.Sequence) or hint in (list, tuple):
+        if not isinstance(value, (list, tuple)):
+            return f"a list{_of(args)}"
+        item = args[0] if args else Any
+        for element in value:
+            problem = _type_problem(element, item)
+            if problem:
+                return f"a list{_of(args)} (an element {_short(element)} is not {problem})"
+        return None
+    if origin in (dict, collections.abc.Mapping) or hint in (dict,):
+        return None if isinstance(value, dict) else "a mapping"
+    return None                    # other types (arrays, dataclasses): the constructor checks them
+
+
+def _of(args: tuple) -> str:
+    if not args or args[0] is Any:
+        return ""
+    inner = args[0]
+    if typing.get_origin(inner) in (list, tuple, collections.abc.Sequence):
+        return " of lists"
+    return {float: " of numbers", int: " of integers", str: " of strings", bool: " of true/false"}.get(inner, "")
 
 
 def flatten(container: Any, prefix: str = "", skip: tuple[str, ...] = ()) -> dict[str, Any]:

@@ -121,7 +121,9 @@ def test_truncated_or_foreign_cache_file_is_rejected_and_recomputed(tmp_path, ca
                                 "experiment 'ao_vsimm_s1' are ['fsimm', 'vsimm', 'ao_vsimm']"),
     (["models.transition_matrix.1.1=0.5"], "row 1 (m2) sums to 0.55; every row must sum to 1"),
     (["models.transition_matrix=[[1,0],[0,1]]"], "transition_matrix: shape 2x2 does not match the 13 models"),
-    (["filters.vsimm.ratio=sideways"], "filters.vsimm: ratio: 'sideways' is not one of ['printed', 'new_old', 'old_new']"),
+    (["filters.vsimm.ratio=sideways"], "filters.vsimm.ratio: 'sideways' is not allowed; it must be one of ['printed', 'new_old', 'old_new']"),
+    (["filters.vsimm.t1_mu=high"], "filters.vsimm.t1_mu: 'high' is not allowed; it must be a number"),
+    (["scenario.steps=2.5"], "scenario.steps: 2.5 is not allowed; it must be an integer"),
     (["experiment=ao_vsimm_s2", "metrics.group_reached.group=M9"],
      "metrics.group_reached.group: 'M9' is not a model group of this experiment; groups are ['M1', 'M2', 'M3', 'M4', 'M5']"),
 ])
