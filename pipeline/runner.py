@@ -11,6 +11,7 @@ from __future__ import annotations
 import datetime as dt
 import json
 import logging
+import resource
 import time
 import traceback
 from dataclasses import dataclass
@@ -70,6 +71,8 @@ def write_status(ctx: RunContext, experiment: str, status: str, *, config_hash: 
         "finished_at": None if status == "running" else _now(), "overrides": ctx.overrides,
         "config_hash": config_hash or previous.get("config_hash", ""), "sweep": ctx.sweep, "job_num": ctx.job_num,
         "runs": runs if runs is not None else previous.get("runs"), "package_version": package_version(),
+        # the process's high-water mark so far (a pooled sweep worker's covers its earlier jobs too)
+        "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0, 1),
     }
     if detail:
         record["traceback"] = detail
