@@ -174,26 +174,47 @@ class _Stages:
         return value, hit is not None
 
 
+@dataclass(frozen=True)
+class Prepared:
+    """Everything an experiment needs, built and cross-checked from its config before any stage."""
+
+    study: Any
+    scenario: Any
+    sensor: Any
+    estimators: dict[str, Any]
+    variants: list[str]
+    report_tables: dict[str, Any]
+
+
+def prepare(cfg: DictConfig) -> Prepared:
+    """Check the config and build every node (raising ConfigError naming the key): nothing is read
+    or written, so a bad value costs nothing and leaves every file as it was."""
+    validate(cfg)
+    report_tables = build_report_tables(cfg)
+    variants = selected_variants(cfg)
+    study = build(cfg.study, "study") if cfg.get("study") is not None else _default_study(cfg)
+    scenario = build(cfg.scenario, "scenario")
+    sensor = build(cfg.sensors, "sensors")
+    estimators = {v: build(cfg.filters[v], f"filters.{v}") for v in variants}
+    study.check(scenario, sensor, estimators)
+    return Prepared(study, scenario, sensor, estimators, variants, report_tables)
+
+
 def run_experiment(cfg: DictConfig, ctx: RunContext) -> RunOutcome:
     """Run every stage of one experiment job; write its tables, recording and status."""
     total_started = time.perf_counter()
     experiment = str(cfg.get("experiment_name"))
-    validate(cfg)
-    report_tables = build_report_tables(cfg)
+    prepared = prepare(cfg)
+    report_tables = prepared.report_tables
     resolved = OmegaConf.to_container(cfg, resolve=True)
     config_hash = stable_hash(resolved)
     runs, seed = int(cfg.mc.runs), int(cfg.mc.seed)
     ctx.run_dir.mkdir(parents=True, exist_ok=True)
     write_status(ctx, experiment, "running", config_hash=config_hash, runs=runs)
     atomic_write_text(OmegaConf.to_yaml(cfg, resolve=True), ctx.run_dir / "config.yaml")
-    variants = selected_variants(cfg)
+    variants = prepared.variants
     log.info("experiment %s: %d Monte Carlo runs, seed %d, variants %s -> %s", experiment, runs, seed, variants, ctx.run_dir)
-
-    study = build(cfg.study, "study") if cfg.get("study") is not None else _default_study(cfg)
-    scenario = build(cfg.scenario, "scenario")
-    sensor = build(cfg.sensors, "sensors")
-    estimators = {v: build(cfg.filters[v], f"filters.{v}") for v in variants}
-    study.check(scenario, sensor, estimators)
+    study, scenario, sensor, estimators = prepared.study, prepared.scenario, prepared.sensor, prepared.estimators
     cache = StageCache(ctx.artifacts / "cache", enabled=bool(cfg.cache.enabled))
     provenance = {"mtt.experiment": experiment, "mtt.config_hash": config_hash, "mtt.package_version": package_version()}
     stages = _Stages(cache, ctx, provenance)

@@ -9,6 +9,7 @@ from typing import Sequence
 
 import numpy as np
 
+from pipeline.checks import non_negative
 from pipeline.data import Truth
 from pipeline.seeding import run_generators
 
@@ -70,8 +71,7 @@ class PiecewiseAcceleration3D:
         if round(steps) < 2:
             raise ValueError(f"duration: {duration} s must be >= 2 dt = {2 * dt} s (two-point initialisation "
                              f"needs scans 0 and 1, and one more to filter)")
-        if not process_noise_std >= 0:
-            raise ValueError(f"process_noise_std: {process_noise_std} must be >= 0 m/s^2")
+        non_negative("process_noise_std", process_noise_std, "m/s^2")
         if acceleration_at_scan not in ("in_force", "last_interval"):
             raise ValueError(f"acceleration_at_scan: {acceleration_at_scan!r} is not one of ['in_force', "
                              f"'last_interval']")

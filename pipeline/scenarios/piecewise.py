@@ -7,6 +7,7 @@ from typing import Sequence
 import numpy as np
 
 from filters.models import acceleration_input_gain, constant_velocity_transition
+from pipeline.checks import non_negative
 from pipeline.data import Truth
 from pipeline.seeding import run_generators
 
@@ -32,8 +33,7 @@ class PiecewiseAccelerationScenario:
             raise ValueError(f"steps: {steps} must be >= 2 (two-point initialisation needs scans 0 and 1)")
         if not dt > 0:
             raise ValueError(f"dt: {dt} must be > 0 s")
-        if process_noise_std < 0:
-            raise ValueError(f"process_noise_std: {process_noise_std} must be >= 0")
+        non_negative("process_noise_std", process_noise_std, "m/s^2")
         self.initial_state = np.asarray(initial_state, dtype=float)
         self.steps = int(steps)
         self.dt = float(dt)

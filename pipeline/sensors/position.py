@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from pipeline.checks import positive
 from pipeline.data import Detections, Truth
 from pipeline.seeding import run_generators
 
@@ -12,8 +13,7 @@ class PositionSensor:
     """z_k = (x, y) + v_k, v_k ~ N(0, noise_std^2 I2), every scan, every target, no misses."""
 
     def __init__(self, noise_std: float = 20.0, sensor_id: int = 0) -> None:
-        if not noise_std > 0:
-            raise ValueError(f"noise_std: {noise_std} must be > 0 m")
+        positive("noise_std", noise_std, "m")
         self.noise_std = float(noise_std)
         self.sensor_id = int(sensor_id)
 
