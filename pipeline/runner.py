@@ -168,6 +168,9 @@ class _Stages:
             computed = time.perf_counter() - started
             df, meta = to_frame(value)
             path = self.cache.store(stage, key, df, {**meta, **self.provenance})
+            # later stages see exactly what the table holds (e.g. the float32 compact covariance),
+            # so a recomputed stage and a cached one give bit-identical metrics
+            value = schemas.FROM_FRAME[table](df, {k: str(v) for k, v in meta.items()})
             log.info("[%s] computed %s, %.2f s (+%.2f s to write the cache)", stage, describe, computed,
                      time.perf_counter() - started - computed)
         publish(path, self.ctx.run_dir / publish_as)

@@ -1,0 +1,87 @@
+"""Determinism: for a given seed the tables are bit-identical whatever the launcher (basic,
+joblib), whether a stage was computed or read back from the cache, and however the runs are
+chunked."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import polars as pl
+import pytest
+from hydra import compose, initialize_config_dir
+from polars.testing import assert_frame_equal
+
+from pipeline.runner import RunContext, run_experiment
+
+ROOT = Path(__file__).resolve().parents[1]
+# columns that say where and when a table was made, not what it holds
+PROVENANCE = ("run_id", "config_hash", "overrides", "sweep", "job_num", "estimates_from_cache", "paths.artifacts", "cache.enabled",
+              "hydra/launcher", "mc.chunk_runs")
+TIMINGS = ("compute_seconds", "compute_pct_of_reference")
+
+
+def content(run_dir: Path) -> dict[str, pl.DataFrame]:
+    """Every table of a run directory, without provenance columns and wall-clock rows."""
+    tables = {}
+    for path in sorted(run_dir.rglob("*.parquet")):
+        df = pl.read_parquet(path)
+        df = df.drop([c for c in df.columns if c in PROVENANCE or c.startswith("hydra")])
+        if "metric" in df.columns:
+            df = df.filter(~pl.col("metric").is_in(TIMINGS))
+        tables[path.relative_to(run_dir).as_posix()] = df
+    return tables
+
+
+def assert_same_tables(a: Path, b: Path) -> None:
+    left, right = content(a), content(b)
+    assert sorted(left) == sorted(right)
+    for name in left:
+        try:
+            assert_frame_equal(left[name], right[name], check_exact=True)
+        except AssertionError as exc:
+            raise AssertionError(f"{name} differs between {a} and {b}: {exc}") from None
+
+
+def in_process(artifacts: Path, name: str, *overrides: str) -> Path:
+    with initialize_config_dir(version_base="1.3", config_dir=str(ROOT / "conf")):
+        cfg = compose("config", overrides=[f"paths.artifacts={artifacts}", "record.enabled=false", *overrides])
+    ctx = RunContext(artifacts / "runs" / name, artifacts, list(overrides))
+    run_experiment(cfg, ctx)
+    return ctx.run_dir
+
+
+def sweep(artifacts: Path, *args: str) -> list[Path]:
+    artifacts.mkdir(parents=True, exist_ok=True)
+    env = {**os.environ, "HYDRA_FULL_ERROR": "0", "PYTHONPATH": str(ROOT)}
+    proc = subprocess.run([sys.executable, "-m", "pipeline", "-m", f"paths.artifacts={artifacts}", *args],
+                          cwd=artifacts, capture_output=True, text=True, timeout=300, env=env)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    (where,) = (artifacts / "multirun").iterdir()
+    return sorted((p for p in where.iterdir() if p.is_dir() and p.name.isdigit()), key=lambda p: int(p.name))
+
+
+@pytest.mark.parametrize("experiment, overrides", [
+    ("ao_vsimm_s1", ["mc.runs=3", "scenario.steps=40"]),
+    ("mie_los", ["mc.runs=3"]),
+    ("async_bias", ["mc.runs=2", "scenario.duration=20"]),
+    ("sonar_case2", ["mc.runs=2", "scenario.duration=1200"]),
+    ("sonobuoy_case2", ["mc.runs=2", "scenario.duration=100", "target_model.particles=100"]),
+])
+def test_a_cached_stage_gives_the_same_tables_as_a_recomputed_one(tmp_path, experiment, overrides):
+    fresh = in_process(tmp_path / "a", "fresh", f"experiment={experiment}", *overrides)
+    again = in_process(tmp_path / "a", "again", f"experiment={experiment}", *overrides)      # every stage cached
+    uncached = in_process(tmp_path / "b", "uncached", f"experiment={experiment}", "cache.enabled=false", *overrides)
+    assert_same_tables(fresh, again)
+    assert_same_tables(fresh, uncached)
+
+
+def test_the_launcher_does_not_change_the_tables(tmp_path):
+    args = ["experiment=ao_vsimm_s1", "mc.seed=1,2", "mc.runs=3", "scenario.steps=40", "record.enabled=false"]
+    basic = sweep(tmp_path / "basic", *args)
+    joblib = sweep(tmp_path / "joblib", *args, "hydra/launcher=joblib", "hydra.launcher.n_jobs=2")
+    assert len(basic) == len(joblib) == 2
+    for a, b in zip(basic, joblib):
+        assert_same_tables(a, b)
