@@ -7,8 +7,8 @@ notebook with arrays built by hand.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-from typing import Mapping, Protocol
+from dataclasses import dataclass, field, replace
+from typing import Mapping, Protocol, Sequence
 
 import numpy as np
 
@@ -49,6 +49,13 @@ class MeasurementSeries:
     def scans(self) -> int:
         return self.z.shape[1]
 
+    def select(self, runs: Sequence[int]) -> "MeasurementSeries":
+        """The same scans for a subset of runs (a chunk of the Monte Carlo)."""
+        index = np.asarray(runs, dtype=int)
+        cov = self.noise_covariance
+        return replace(self, z=self.z[index], detected=self.detected[index],
+                       noise_covariance=cov[index] if cov.ndim == 4 else cov)
+
 
 @dataclass(frozen=True)
 class TrackEstimate:
@@ -71,6 +78,15 @@ class TrackEstimate:
     covariance: np.ndarray
     extras: Mapping[str, np.ndarray] = field(default_factory=dict)
     compute_seconds: float = float("nan")
+
+    @classmethod
+    def concat_runs(cls, parts: Sequence["TrackEstimate"]) -> "TrackEstimate":
+        """Chunks of runs (in run order) as one estimate; compute time is the sum of the chunks'."""
+        first = parts[0]
+        return cls(first.time, np.concatenate([p.state for p in parts]),
+                   np.concatenate([p.covariance for p in parts]),
+                   {name: np.concatenate([np.asarray(p.extras[name]) for p in parts]) for name in first.extras},
+                   float(sum(p.compute_seconds for p in parts)))
 
 
 class Estimator(Protocol):

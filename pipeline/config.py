@@ -53,6 +53,10 @@ def validate(cfg: DictConfig) -> None:
     seed = cfg.mc.seed
     if not _is_int(seed) or seed < 0:
         raise ConfigError(f"mc.seed: {seed!r} is not allowed; the seed must be an integer >= 0.")
+    chunk = cfg.mc.get("chunk_runs")
+    if chunk is not None and (not _is_int(chunk) or chunk < 1):
+        raise ConfigError(f"mc.chunk_runs: {chunk!r} is not allowed; it must be an integer >= 1 (runs filtered "
+                          f"together) or null (all runs at once). Results do not depend on it.")
     if not cfg.get("filters"):
         raise ConfigError(f"filters: experiment '{cfg.experiment_name}' defines no filter variants; add at least "
                           f"one node with a _target_ under filters (e.g. +filter@filters.fsimm=fsimm).")
