@@ -1,0 +1,108 @@
+"""Numerical faults of a filter, flagged per run and step.
+
+A sweep that runs for hours must not hand back a table whose numbers silently came from a
+broken filter. Each estimate table gets a ``fault`` column (a bit mask per run x step) computed
+from the estimate itself before it is stored, and each summary counts the runs that hit each
+fault. A faulty run does not stop the others: its rows stay in the table, flagged.
+
+Bits (``FAULTS``):
+
+- ``nonfinite``: the state or covariance holds NaN or inf after the run's first estimate (the NaN
+  rows before a track starts are not a fault);
+- ``asymmetric``: the covariance is not symmetric: max |P - P'| > tolerance * max |P|;
+- ``not_positive_definite``: the covariance has no Cholesky factor (an eigenvalue <= 0);
+- ``nees_above_bound``: the NEES against the truth exceeds a configured bound (``faults.nees_bound``;
+  a divergence test: a consistent filter's NEES is chi-square with n dof);
+- ``weights_underflow``: a particle filter reported that all its weights underflowed at that step
+  (``extras["weights_underflow"]``) and had to restart its weights.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+FAULTS = {"nonfinite": 1, "asymmetric": 2, "not_positive_definite": 4, "nees_above_bound": 8,
+          "weights_underflow": 16}
+
+
+@dataclass(frozen=True)
+class FaultChecks:
+    """What counts as a fault (config node ``faults``)."""
+
+    symmetry_tolerance: float = 1e-8
+    nees_bound: float | None = None
+
+    def __post_init__(self) -> None:
+        if not (np.isfinite(self.symmetry_tolerance) and self.symmetry_tolerance >= 0):
+            raise ValueError(f"faults.symmetry_tolerance: {self.symmetry_tolerance!r} must be a finite number >= 0 "
+                             f"(relative to the largest covariance entry)")
+        if self.nees_bound is not None and not (np.isfinite(self.nees_bound) and self.nees_bound > 0):
+            raise ValueError(f"faults.nees_bound: {self.nees_bound!r} must be a number > 0 or null (no NEES test)")
+
+
+def fault_flags(state: np.ndarray, covariance: np.ndarray, checks: FaultChecks = FaultChecks(),
+                error: np.ndarray | None = None, weights_underflow: np.ndarray | None = None) -> np.ndarray:
+    """(R, K) uint8 bit mask of FAULTS for states (R, K, n) and covariances (R, K, n, n).
+
+    ``error`` (R, K, n): estimate minus truth, for the NEES bound; ``weights_underflow`` (R, K) bool.
+    Extra leading axes (e.g. targets: (R, K, T, n)) are allowed: a step is flagged if any of them is.
+    """
+    state = np.asarray(state, dtype=float)
+    covariance = np.asarray(covariance, dtype=float)
+    finite_state = np.isfinite(state).all(axis=-1)
+    finite = finite_state & np.isfinite(covariance).all(axis=(-1, -2))
+    # a run's rows before its first estimate are NaN by design (no track yet)
+    started = np.logical_or.accumulate(finite_state, axis=1)
+    flags = np.zeros(finite.shape, dtype=np.uint8)
+    flags |= np.where(started & ~finite, FAULTS["nonfinite"], 0).astype(np.uint8)
+
+    P = np.where(finite[..., None, None], covariance, np.eye(covariance.shape[-1]))
+    scale = np.abs(P).max(axis=(-1, -2))
+    asymmetry = np.abs(P - np.swapaxes(P, -1, -2)).max(axis=(-1, -2))
+    flags |= np.where(finite & (asymmetry > checks.symmetry_tolerance * scale), FAULTS["asymmetric"], 0).astype(np.uint8)
+    flags |= np.where(finite & ~_positive_definite(0.5 * (P + np.swapaxes(P, -1, -2))),
+                      FAULTS["not_positive_definite"], 0).astype(np.uint8)
+
+    if checks.nees_bound is not None and error is not None:
+        e = np.where(finite[..., None], np.asarray(error, dtype=float), 0.0)
+        with np.errstate(all="ignore"):
+            nees = np.einsum("...i,...i->...", e, _solve(P, e))
+        flags |= np.where(finite & ~(nees <= checks.nees_bound), FAULTS["nees_above_bound"], 0).astype(np.uint8)
+    if weights_underflow is not None:
+        flags |= np.where(np.asarray(weights_underflow, dtype=bool), FAULTS["weights_underflow"], 0).astype(np.uint8)
+    while flags.ndim > 2:                      # targets etc.: a step is faulty if any of them is
+        flags = np.bitwise_or.reduce(flags, axis=-1)
+    return flags
+
+
+def _positive_definite(P: np.ndarray) -> np.ndarray:
+    """Per matrix: has a Cholesky factor. One batched call when all do (the usual case)."""
+    try:
+        np.linalg.cholesky(P)
+        return np.ones(P.shape[:-2], dtype=bool)
+    except np.linalg.LinAlgError:
+        return np.linalg.eigvalsh(P).min(axis=-1) > 0
+
+
+def _solve(P: np.ndarray, e: np.ndarray) -> np.ndarray:
+    try:
+        return np.linalg.solve(P, e[..., None])[..., 0]
+    except np.linalg.LinAlgError:           # a singular covariance (flagged not_positive_definite)
+        return (np.linalg.pinv(P) @ e[..., None])[..., 0]
+
+
+def fault_summary(flags: np.ndarray) -> dict[str, int]:
+    """Runs with any fault (``diverged_runs``) and runs with each fault (``fault_runs_<name>``)."""
+    flags = np.asarray(flags, dtype=np.uint8)
+    per_run = np.bitwise_or.reduce(flags, axis=1) if flags.size else np.zeros(flags.shape[0], dtype=np.uint8)
+    out = {"diverged_runs": int((per_run != 0).sum())}
+    for name, bit in FAULTS.items():
+        out[f"fault_runs_{name}"] = int(((per_run & bit) != 0).sum())
+    return out
+
+
+def describe(mask: int) -> list[str]:
+    """The fault names of one bit mask."""
+    return [name for name, bit in FAULTS.items() if mask & bit]

@@ -1,0 +1,68 @@
+"""Numerical-fault flags: each fault injected into an otherwise healthy estimate is flagged at
+its run and step only."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from pipeline.stages.faults import FAULTS, FaultChecks, describe, fault_flags, fault_summary
+
+
+def healthy(R=5, K=8, n=4, seed=0):
+    rng = np.random.default_rng(seed)
+    A = rng.standard_normal((R, K, n, n))
+    P = A @ np.swapaxes(A, -1, -2) + n * np.eye(n)
+    x = rng.standard_normal((R, K, n))
+    x[:, 0] = np.nan                       # no estimate at the first scan: not a fault
+    P[:, 0] = np.nan
+    return x, P
+
+
+def test_a_healthy_estimate_has_no_flag():
+    x, P = healthy()
+    assert not fault_flags(x, P, FaultChecks(nees_bound=1e6), error=np.nan_to_num(x)).any()
+
+
+@pytest.mark.parametrize("fault", ["nonfinite_state", "inf_covariance", "asymmetric", "not_positive_definite",
+                                   "nees_above_bound", "weights_underflow"])
+def test_each_injected_fault_is_flagged_at_its_run_and_step_only(fault):
+    x, P = healthy()
+    error = np.nan_to_num(x.copy())
+    underflow = np.zeros(x.shape[:2], dtype=bool)
+    run, step = 3, 5
+    expected = {"nonfinite_state": "nonfinite", "inf_covariance": "nonfinite"}.get(fault, fault)
+    if fault == "nonfinite_state":
+        x[run, step, 1] = np.nan
+    elif fault == "inf_covariance":
+        P[run, step, 2, 2] = np.inf
+    elif fault == "asymmetric":
+        P[run, step, 0, 1] += 1e-3 * np.abs(P[run, step]).max()
+    elif fault == "not_positive_definite":
+        P[run, step] = np.diag([1.0, 1.0, -1e-3, 1.0])
+    elif fault == "nees_above_bound":
+        error[run, step] = 1e3
+    else:
+        underflow[run, step] = True
+    flags = fault_flags(x, P, FaultChecks(nees_bound=100.0), error=error, weights_underflow=underflow)
+    assert flags[run, step] == FAULTS[expected] and describe(int(flags[run, step])) == [expected]
+    flags[run, step] = 0
+    assert not flags.any()                 # every other run and step is clean
+    summary = fault_summary(np.where(np.arange(5)[:, None] == run, FAULTS[expected], 0).astype(np.uint8))
+    assert summary["diverged_runs"] == 1 and summary[f"fault_runs_{expected}"] == 1
+
+
+def test_per_target_flags_reduce_to_the_step():
+    x, P = healthy(R=2, K=3, n=2)
+    x = np.repeat(x[:, :, None], 3, axis=2)
+    P = np.repeat(P[:, :, None], 3, axis=2)
+    P[1, 2, 2] = np.diag([1.0, -1.0])
+    flags = fault_flags(x, P)
+    assert flags.shape == (2, 3) and flags[1, 2] == FAULTS["not_positive_definite"] and flags.sum() == flags[1, 2]
+
+
+def test_bad_thresholds_are_refused_with_the_key():
+    with pytest.raises(ValueError, match="faults.nees_bound"):
+        FaultChecks(nees_bound=-1.0)
+    with pytest.raises(ValueError, match="faults.symmetry_tolerance"):
+        FaultChecks(symmetry_tolerance=float("nan"))
