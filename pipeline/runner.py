@@ -18,6 +18,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
 
+import numpy as np
 import polars as pl
 from omegaconf import DictConfig, OmegaConf
 
@@ -25,6 +26,7 @@ from pipeline import schemas
 from pipeline.config import build, flatten, selected_variants, validate
 from pipeline.errors import ConfigError
 from pipeline.stages.evaluate import Window, metrics_frame, summary_rows
+from pipeline.stages.faults import FaultChecks, fault_flags, fault_summary
 from pipeline.stages.report import ReportContext, format_summary
 from pipeline.stages.track import SingleTargetStudy
 from pipeline.store import StageCache, atomic_write_parquet, atomic_write_text, package_version, publish, stable_hash, stage_key
@@ -156,10 +158,13 @@ class _Stages:
         self.provenance = provenance
 
     def run(self, stage: str, key: str, table: str, compute: Callable[[], Any],
-            to_frame: Callable[[Any], tuple[pl.DataFrame, dict]], publish_as: Path, describe: str) -> Any:
+            to_frame: Callable[[Any], tuple[pl.DataFrame, dict]], publish_as: Path, describe: str
+            ) -> tuple[Any, bool, pl.DataFrame]:
+        """(the stage's value as the table holds it, whether it came from the cache, the table)."""
         started = time.perf_counter()
         hit = self.cache.load(stage, key, table)
         if hit is not None:
+            df = hit[0]
             value = schemas.FROM_FRAME[table](*hit)
             path = self.cache.path(stage, key)
             log.info("[%s] reused cached %s (key %s) %s, %.2f s", stage, path.name, key, describe, time.perf_counter() - started)
@@ -174,7 +179,7 @@ class _Stages:
             log.info("[%s] computed %s, %.2f s (+%.2f s to write the cache)", stage, describe, computed,
                      time.perf_counter() - started - computed)
         publish(path, self.ctx.run_dir / publish_as)
-        return value, hit is not None
+        return value, hit is not None, df
 
 
 @dataclass(frozen=True)
@@ -194,6 +199,7 @@ def prepare(cfg: DictConfig) -> Prepared:
     or written, so a bad value costs nothing and leaves every file as it was."""
     validate(cfg)
     report_tables = build_report_tables(cfg)
+    build_fault_checks(cfg)
     variants = selected_variants(cfg)
     study = build(cfg.study, "study") if cfg.get("study") is not None else _default_study(cfg)
     scenario = build(cfg.scenario, "scenario")
@@ -223,26 +229,30 @@ def run_experiment(cfg: DictConfig, ctx: RunContext) -> RunOutcome:
     stages = _Stages(cache, ctx, provenance)
 
     scenario_key = stage_key("scenario", {"scenario": resolved["scenario"], "runs": runs, "seed": seed})
-    truth, _ = stages.run("scenario", scenario_key, "truth", lambda: scenario.generate(runs, seed),
+    truth, _, _ = stages.run("scenario", scenario_key, "truth", lambda: scenario.generate(runs, seed),
                           schemas.truth_to_frame, Path("truth.parquet"), f"{runs} runs")
     K = truth.time.size
     measure_key = stage_key("measure", {"sensors": resolved["sensors"], "seed": seed}, (scenario_key,))
-    detections, _ = stages.run("measure", measure_key, "detections", lambda: sensor.measure(truth, seed),
+    detections, _, _ = stages.run("measure", measure_key, "detections", lambda: sensor.measure(truth, seed),
                                schemas.detections_to_frame, Path("detections.parquet"), f"{runs} runs x {K} scans")
     track_input = study.track_input(truth, detections, sensor, seed)
     # the adapter's node is part of what the filters see (the default adapter has none)
     study_node = {"study": resolved["study"]} if cfg.get("study") is not None else {}
 
     chunk_runs = cfg.mc.get("chunk_runs")
+    fault_checks = build_fault_checks(cfg)
+    faults: dict[str, dict[str, int]] = {}
     estimates: dict[str, Any] = {}
     display: dict[str, str] = {}
     cached: dict[str, bool] = {}
     for v in variants:
-        est_key = stage_key("track", {"filter": resolved["filters"][v], **study_node}, (measure_key,))
+        # the fault checks decide the table's fault column, so they are part of its key
+        est_key = stage_key("track", {"filter": resolved["filters"][v], **study_node, "faults": resolved.get("faults")},
+                            (measure_key,))
         estimator = estimators[v]
-        estimate, hit = stages.run(
+        estimate, hit, table = stages.run(
             "track", est_key, study.estimate_table, lambda e=estimator: filter_runs(e, track_input, chunk_runs),
-            lambda e: study.estimate_to_frame(e, truth),
+            lambda e: with_fault_flags(study, e, truth, fault_checks),
             Path("estimates") / f"{v}.parquet", f"{getattr(estimator, 'name', v)}: {runs} runs x {K} scans")
         if not hit:
             per_step = getattr(estimate, "extras", {}).get("models_evaluated")
@@ -251,6 +261,12 @@ def run_experiment(cfg: DictConfig, ctx: RunContext) -> RunOutcome:
         estimates[v] = estimate
         display[v] = str(getattr(estimator, "name", v))
         cached[v] = hit
+        faults[v] = fault_summary(flags_from_table(table, runs, K))
+        if faults[v]["diverged_runs"]:
+            log.warning("[track] %s: %d of %d runs hit a numerical fault (%s); their rows are flagged in "
+                        "estimates/%s.parquet (column fault)", display[v], faults[v]["diverged_runs"], runs,
+                        ", ".join(f"{name[len('fault_runs_'):]}: {count}" for name, count in faults[v].items()
+                                  if name.startswith("fault_runs_") and count), v)
 
     started = time.perf_counter()
     per_variant = {v: (display[v], study.per_step_metrics(truth, estimates[v], sensor)) for v in variants}
@@ -269,6 +285,9 @@ def run_experiment(cfg: DictConfig, ctx: RunContext) -> RunOutcome:
         rows = extra(truth, estimates, display, runs, ref if ref in variants else None, sensor, per_variant)
         if rows:
             summary = pl.concat([summary, pl.DataFrame(rows, schema=summary.schema)])
+    fault_rows = [{"variant": display[v], "variant_key": v, "metric": name, "window": None, "value": float(count),
+                   "unit": "runs", "n_runs": runs} for v in variants for name, count in faults[v].items()]
+    summary = pl.concat([summary, pl.DataFrame(fault_rows, schema=summary.schema)])
     summary = summary.with_columns(pl.col("variant_key").replace_strict(
         {v: cached[v] for v in variants}, return_dtype=pl.Boolean).alias("estimates_from_cache"))
     metrics = _provenance(metrics_frame(truth.time, per_variant, runs), ctx, experiment, config_hash)
@@ -318,6 +337,48 @@ def filter_runs(estimator: Any, track_input: Any, chunk_runs: int | None) -> Any
 def _runs_of(track_input: Any) -> int:
     runs = getattr(track_input, "runs", None)
     return int(runs) if runs is not None else int(track_input.z.shape[0])
+
+
+def build_fault_checks(cfg: DictConfig) -> FaultChecks:
+    node = cfg.get("faults")
+    if node is None:
+        return FaultChecks()
+    if not isinstance(node, DictConfig):
+        raise ConfigError(f"faults: {node!r} must be a mapping with symmetry_tolerance and nees_bound.")
+    unknown = sorted(set(node.keys()) - {"symmetry_tolerance", "nees_bound"})
+    if unknown:
+        raise ConfigError(f"faults: unknown key(s) {unknown}; allowed are symmetry_tolerance (a number >= 0) and "
+                          f"nees_bound (a number > 0 or null).")
+    try:
+        return FaultChecks(**OmegaConf.to_container(node, resolve=True))
+    except (TypeError, ValueError) as exc:
+        raise ConfigError(str(exc)) from None
+
+
+def with_fault_flags(study: Any, estimate: Any, truth: Any, checks: FaultChecks) -> tuple[pl.DataFrame, dict]:
+    """The study's estimate table plus ``fault``: the bit mask of pipeline.stages.faults per run x step
+    (each row of a run and step gets it, e.g. every target's row)."""
+    df, meta = study.estimate_to_frame(estimate, truth)
+    own = getattr(study, "fault_flags", None)          # a study whose estimate is not a TrackEstimate
+    if own is not None:
+        flags = own(estimate, truth, checks)
+    elif hasattr(estimate, "state") and hasattr(estimate, "covariance"):   # no truth comparison: no NEES test
+        extras = getattr(estimate, "extras", {}) or {}
+        flags = fault_flags(estimate.state, estimate.covariance, checks, None, extras.get("weights_underflow"))
+    else:
+        raise TypeError(f"{type(study).__name__} returns {type(estimate).__name__} estimates without state and "
+                        f"covariance: give the study a fault_flags(estimate, truth, checks) method")
+    run = df["run"].to_numpy()
+    step = df["step"].to_numpy()
+    return df.with_columns(pl.Series("fault", flags[run, step], dtype=pl.UInt8)), meta
+
+
+def flags_from_table(table: pl.DataFrame, runs: int, steps: int) -> np.ndarray:
+    """(R, K) fault bit masks back from an estimate table (0 where the table has no fault column)."""
+    flags = np.zeros((runs, steps), dtype=np.uint8)
+    if "fault" in table.columns:
+        np.bitwise_or.at(flags, (table["run"].to_numpy(), table["step"].to_numpy()), table["fault"].to_numpy())
+    return flags
 
 
 def _default_study(cfg: DictConfig) -> SingleTargetStudy:

@@ -18,7 +18,7 @@ from filters.base import TrackEstimate
 from filters.bias import BIAS_NAMES, STATE_NAMES as BIAS_STUDY_STATE, BiasRegistrationResult
 from pipeline.data import Detections, Truth
 
-SCHEMA_VERSION = "1"
+SCHEMA_VERSION = "2"          # 2: estimates tables carry the fault column
 META_TABLE = "mtt.table"
 META_VERSION = "mtt.schema_version"
 META_UNITS = "mtt.units"

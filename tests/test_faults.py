@@ -66,3 +66,33 @@ def test_bad_thresholds_are_refused_with_the_key():
         FaultChecks(nees_bound=-1.0)
     with pytest.raises(ValueError, match="faults.symmetry_tolerance"):
         FaultChecks(symmetry_tolerance=float("nan"))
+
+
+def test_the_pipeline_flags_injected_faults_per_run_and_step_and_counts_them(tmp_path):
+    import polars as pl
+    from hydra import compose, initialize_config_dir
+
+    from pipeline.runner import RunContext, run_experiment
+    from tests.conftest import CONF
+
+    overrides = ["mc.runs=5", "scenario.steps=30", "filters.fsimm._target_=tests.faulty_filters.FaultyFSIMM",
+                 "variants=[fsimm,vsimm]"]
+    with initialize_config_dir(version_base="1.3", config_dir=str(CONF)):
+        cfg = compose("config", overrides=[f"paths.artifacts={tmp_path}", "record.enabled=false", *overrides])
+    ctx = RunContext(tmp_path / "runs" / "faulty", tmp_path, overrides)
+    outcome = run_experiment(cfg, ctx)
+
+    table = pl.read_parquet(ctx.run_dir / "estimates" / "fsimm.parquet")
+    flagged = table.filter(pl.col("fault") != 0).select("run", "step", "fault").sort("run", "step")
+    expected = ([(1, 10, FAULTS["asymmetric"]), (3, 15, FAULTS["not_positive_definite"])]
+                + [(2, k, FAULTS["nonfinite"]) for k in range(20, table["step"].max() + 1)])
+    assert sorted(flagged.rows()) == sorted(expected)
+    assert (pl.read_parquet(ctx.run_dir / "estimates" / "vsimm.parquet")["fault"] == 0).all()
+
+    def count(variant_key, metric):
+        return outcome.summary.filter((pl.col("variant_key") == variant_key) & (pl.col("metric") == metric))["value"][0]
+    assert count("fsimm", "diverged_runs") == 3 and count("vsimm", "diverged_runs") == 0
+    assert count("fsimm", "fault_runs_nonfinite") == 1 and count("fsimm", "fault_runs_asymmetric") == 1
+    # the other runs' results are kept: the RMSE of the diverged steps comes from the 4 healthy runs
+    rmse = outcome.metrics.filter((pl.col("variant_key") == "fsimm") & (pl.col("metric") == "position_rmse"))
+    assert rmse.filter(pl.col("step") >= 20)["value"].is_finite().all()

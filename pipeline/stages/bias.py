@@ -111,6 +111,18 @@ class BiasRegistrationStudy:
     def estimate_to_frame(result: BiasRegistrationResult, truth=None):
         return schemas.bias_estimates_to_frame(result)
 
+    @staticmethod
+    def fault_flags(result: BiasRegistrationResult, truth: Truth, checks) -> np.ndarray:
+        """(R, reports) fault masks of the bias estimate and of every kept track, biased and
+        compensated (no NEES test: the bias truth lives in the sensor, the tracks' in the truth)."""
+        from pipeline.stages.faults import fault_flags
+        flags = np.zeros(result.track_state.shape[:2], dtype=np.uint8)
+        if np.isfinite(result.bias).any():
+            flags |= fault_flags(result.bias, result.bias_covariance, checks)
+        flags |= fault_flags(result.track_state, result.track_covariance, checks)
+        flags |= fault_flags(result.compensated_state, result.compensated_covariance, checks)
+        return flags
+
     # ---- evaluate --------------------------------------------------------------------------
     @staticmethod
     def per_step_metrics(truth: Truth, result: BiasRegistrationResult, sensor) -> dict[str, np.ndarray]:

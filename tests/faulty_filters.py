@@ -1,0 +1,23 @@
+"""Filters with injected numerical faults, for the fault-flag tests (used as config _target_s)."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+
+from filters.imm import FSIMM
+
+
+class FaultyFSIMM(FSIMM):
+    """FSIMM whose output is broken on purpose: run 1's covariance loses symmetry at step 10,
+    run 2 diverges to NaN from step 20 on, run 3's covariance is not positive definite at step 15."""
+
+    def run(self, measurements):
+        estimate = super().run(measurements)
+        state, covariance = estimate.state.copy(), estimate.covariance.copy()
+        covariance[1, 10, 0, 1] += 1e-3 * np.abs(covariance[1, 10]).max()
+        state[2, 20:] = np.nan
+        covariance[2, 20:] = np.nan
+        covariance[3, 15] = -np.eye(covariance.shape[-1])
+        return replace(estimate, state=state, covariance=covariance)
