@@ -28,7 +28,7 @@ def content(run_dir: Path) -> dict[str, pl.DataFrame]:
     tables = {}
     for path in sorted(run_dir.rglob("*.parquet")):
         df = pl.read_parquet(path)
-        df = df.drop([c for c in df.columns if c in PROVENANCE or c.startswith("hydra")])
+        df = df.drop([c for c in df.columns if c in PROVENANCE or c.startswith(("hydra", "record."))])
         if "metric" in df.columns:
             df = df.filter(~pl.col("metric").is_in(TIMINGS))
         tables[path.relative_to(run_dir).as_posix()] = df
@@ -85,3 +85,4 @@ def test_the_launcher_does_not_change_the_tables(tmp_path):
     assert len(basic) == len(joblib) == 2
     for a, b in zip(basic, joblib):
         assert_same_tables(a, b)
+
