@@ -44,7 +44,7 @@ from typing import Sequence
 
 import numpy as np
 
-from filters.kalman import inverse_2x2, shared_times, times_shared
+from filters.kalman import einsum, inverse_2x2, rows_times, shared_times, times_shared
 
 STATE_NAMES = ("x", "y", "vx", "vy")
 BIAS_NAMES = ("range_offset", "azimuth_offset", "range_scale", "azimuth_scale")
@@ -164,6 +164,12 @@ class RadarReports:
     def runs(self) -> int:
         return self.z.shape[0]
 
+    def select(self, runs: Sequence[int]) -> "RadarReports":
+        """The same reports for a subset of runs (a chunk of the Monte Carlo)."""
+        index = np.asarray(runs, dtype=int)
+        start = None if self.start is None else replace(self.start, state=self.start.state[index])
+        return replace(self, z=self.z[index], start=start)
+
     @property
     def sensors(self) -> int:
         return self.sensor_position.shape[0]
@@ -195,6 +201,16 @@ class BiasRegistrationResult:
     compensated_covariance: np.ndarray
     compute_seconds: float = float("nan")
 
+    @classmethod
+    def concat_runs(cls, parts: Sequence["BiasRegistrationResult"]) -> "BiasRegistrationResult":
+        """Chunks of runs (in run order) as one result; compute time is the sum of the chunks'."""
+        first = parts[0]
+        stacked = {name: np.concatenate([getattr(p, name) for p in parts])
+                   for name in ("bias", "bias_covariance", "track_state", "track_covariance", "compensated_state",
+                                "compensated_covariance")}
+        return cls(first.time, first.sensor, targets=first.targets, compute_seconds=float(sum(p.compute_seconds for p in parts)),
+                   **stacked)
+
 
 # --------------------------------------------------------------------------------------------
 # Biased local filter (eqs 7-21)
@@ -212,10 +228,10 @@ class LocalTracks:
 
 def _cv_move(state: np.ndarray, covariance: np.ndarray, bias_matrix: np.ndarray | None, dt: float,
              density: float) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
-    """Phi X, Phi P Phi' + Q, Phi G with the one shared Phi: each product is a single BLAS call
-    over the whole (runs x targets) stack (kalman.times_shared) instead of one per track."""
+    """Phi X, Phi P Phi' + Q, Phi G with the one shared Phi, one product per track
+    (kalman.times_shared: each run's result does not depend on the batch)."""
     F = cv_transition(dt)
-    moved = state @ F.T
+    moved = rows_times(state, F.T)
     P = shared_times(F, times_shared(covariance, F.T)) + dcwna_process_noise(dt, density)
     G = None if bias_matrix is None else shared_times(F, bias_matrix)
     return moved, P, G
@@ -267,7 +283,7 @@ def compensate(tracks: LocalTracks, bias: np.ndarray, bias_covariance: np.ndarra
     """Eqs 38 and 41: X^b - G beta_hat and P + G Sigma G' (beta_hat (..., 4), Sigma (..., 4, 4)
     broadcast over the target axis)."""
     G = tracks.bias_matrix
-    state = tracks.state - np.einsum("...tij,...j->...ti", G, bias)
+    state = tracks.state - einsum("...tij,...j->...ti", G, bias)
     covariance = tracks.covariance + G @ bias_covariance[..., None, :, :] @ np.swapaxes(G, -1, -2)
     return state, covariance
 
@@ -295,7 +311,7 @@ class BiasInformation:
         n = self.prior_std.size
         covariance = np.linalg.solve(self.information, np.broadcast_to(np.eye(n), self.information.shape))
         covariance = 0.5 * (covariance + np.swapaxes(covariance, -1, -2))
-        mean = np.einsum("rij,rj->ri", covariance, self.information_vector)
+        mean = einsum("rij,rj->ri", covariance, self.information_vector)
         scale = self.prior_std
         return mean * scale, covariance * scale[:, None] * scale[None, :]
 

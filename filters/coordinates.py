@@ -8,6 +8,7 @@ on leading axes; the last axis holds (range, azimuth, elevation) or (x, y, z).
 from __future__ import annotations
 
 import numpy as np
+from filters.kalman import einsum
 
 
 def polar_to_cartesian(polar: np.ndarray) -> np.ndarray:
@@ -53,4 +54,4 @@ def converted_covariance(polar: np.ndarray, polar_variances: np.ndarray) -> np.n
     r, phi, theta = polar[..., 0], polar[..., 1], polar[..., 2]
     T = los_rotation(phi, theta)
     d = los_noise_variances(r, theta, polar_variances)
-    return np.einsum("...ca,...c,...cb->...ab", T, d, T)
+    return einsum("...ca,...c,...cb->...ab", T, d, T)

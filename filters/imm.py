@@ -55,7 +55,7 @@ class ModeSet:
         top = np.max(self.log_weight, axis=1, keepdims=True)
         top = np.where(np.isfinite(top), top, 0.0)
         w = np.exp(self.log_weight - top)
-        return w / w.sum(axis=1, keepdims=True)
+        return w / _slot_sum(w, axis=1)[:, None]
 
 
 _FIELDS = ("model_index", "x", "P", "log_predicted", "log_likelihood", "log_weight")
@@ -96,9 +96,12 @@ def concat(a: ModeSet, b: ModeSet) -> ModeSet:
 def combine(s: ModeSet) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """IMM output combination: x = sum mu x^j, P = sum mu (P^j + d d')."""
     mu = s.probabilities()
-    x = np.einsum("ra,rai->ri", mu, s.x)
+    # sums over the slot axis in slot order (a reduction over a non-innermost axis adds slot by
+    # slot): the padding slots a batch carries (mu = 0) then add exact zeros, so a run's result
+    # does not depend on which runs share its batch (einsum's vectorised sums did)
+    x = (mu[:, :, None] * s.x).sum(axis=1)
     d = s.x - x[:, None, :]
-    P = np.einsum("ra,raij->rij", mu, s.P + d[..., :, None] * d[..., None, :])
+    P = (mu[:, :, None, None] * (s.P + d[..., :, None] * d[..., None, :])).sum(axis=1)
     return x, P, mu
 
 
@@ -226,11 +229,22 @@ def _dense_cycle(prior: ModeSet, targets: np.ndarray, z: np.ndarray, noise_covar
     return ModeSet(targets, x_post.reshape(R, B, n), P_post.reshape(R, B, n, n), log_pred, loglik, log_pred + loglik)
 
 
+def _slot_sum(a: np.ndarray, axis: int) -> np.ndarray:
+    """Sum over the model-slot axis, strictly in slot order.
+
+    A batch's slot axis is as wide as its largest running set, so a run carries padding slots
+    (weight 0) that depend on which runs share its batch. np.sum over a contiguous axis adds in
+    vectorised partial sums whose grouping depends on that width; a running sum adds slot after
+    slot, so the padding adds exact zeros and a run's result does not depend on its batch.
+    """
+    return np.take(np.cumsum(a, axis=axis), -1, axis=axis)
+
+
 def _logsumexp(a: np.ndarray, axis: int) -> np.ndarray:
     top = np.max(a, axis=axis, keepdims=True)
     top = np.where(np.isfinite(top), top, 0.0)
     with np.errstate(divide="ignore"):
-        return np.log(np.exp(a - top).sum(axis=axis)) + np.squeeze(top, axis=axis)
+        return np.log(_slot_sum(np.exp(a - top), axis=axis)) + np.squeeze(top, axis=axis)
 
 
 class _IMMBase:
@@ -495,8 +509,8 @@ class VSIMM(_IMMBase):
         in_new = self._in_group(s, groups.new)
         mu = s.probabilities()
         with np.errstate(divide="ignore", invalid="ignore"):
-            log_mu_old = np.log((mu * in_old).sum(axis=1))
-            log_mu_new = np.log((mu * in_new).sum(axis=1))
+            log_mu_old = np.log(_slot_sum(mu * in_old, axis=1))
+            log_mu_new = np.log(_slot_sum(mu * in_new, axis=1))
             neg = -np.inf
             log_L_old = (_logsumexp(np.where(in_old, s.log_weight, neg), 1)
                          - _logsumexp(np.where(in_old, s.log_predicted, neg), 1))

@@ -53,6 +53,7 @@ import numpy as np
 from filters.base import MeasurementSeries, TrackEstimate
 from filters.coordinates import (converted_covariance, line_of_sight_angles, los_noise_variances, los_rotation,
                                  polar_to_cartesian)
+from filters.kalman import einsum, rows_times
 from filters.models import singer_input_gain, singer_process_noise, singer_transition
 
 # (axis, kinematic) -> inertial output order (x, y, z, vx, vy, vz, ax, ay, az)
@@ -186,8 +187,8 @@ class LOSMIE(_MIEBase):
         rng1, phi1, th1 = line_of_sight_angles(zI[:, 1])
         T = los_rotation(phi1, th1)
         x = np.zeros((R, 3, 3))
-        x[:, :, 0] = np.einsum("rab,rb->ra", T, zI[:, 1])
-        x[:, :, 1] = np.einsum("rab,rb->ra", T, zI[:, 1] - zI[:, 0]) / dt
+        x[:, :, 0] = einsum("rab,rb->ra", T, zI[:, 1])
+        x[:, :, 1] = einsum("rab,rb->ra", T, zI[:, 1] - zI[:, 0]) / dt
         Rd = los_noise_variances(rng1, th1, polar_var)
         P = np.zeros((R, 3, 3, 3))
         P[:, :, 0, 0], P[:, :, 0, 1] = Rd, Rd / dt
@@ -206,16 +207,16 @@ class LOSMIE(_MIEBase):
             x = x @ F.T + u[:, :, None] * G
             P = F @ P @ F.T + Q
             # eqs 5-7, twist-free (notes 2.3): T(k) from the inertial angles of the prediction
-            p_inertial = np.einsum("rab,ra->rb", T, x[:, :, 0])
+            p_inertial = einsum("rab,ra->rb", T, x[:, :, 0])
             rng, phi, th = line_of_sight_angles(p_inertial)
             T_new = los_rotation(phi, th)
             dT = T_new @ np.swapaxes(T, 1, 2)
-            x = np.einsum("rab,rbk->rak", dT, x)
-            u = np.einsum("rab,rb->ra", dT, u)
+            x = einsum("rab,rbk->rak", dT, x)
+            u = einsum("rab,rb->ra", dT, u)
             level_cov = dT @ level_cov @ np.swapaxes(dT, 1, 2)
             T = T_new
             # eqs 8-11, 15: per-axis scalar update with the diagonal LOS noise
-            zL = np.einsum("rab,rb->ra", T, zI[:, k])
+            zL = einsum("rab,rb->ra", T, zI[:, k])
             Rd = los_noise_variances(rng, th, polar_var)
             S = P[:, :, 0, 0] + Rd
             gain = P[:, :, :, 0] / S[:, :, None]
@@ -253,16 +254,16 @@ class LOSMIE(_MIEBase):
     def _output(out_x, out_P, level_out, k, x, P, T, u) -> None:
         """LOS frame -> inertial: x_I = T' x, P_I = T9' blkdiag(P_a) T9, in kin-major order."""
         R = x.shape[0]
-        out_x[:, k] = np.einsum("rab,rak->rkb", T, x).reshape(R, 9)
-        out_P[:, k] = np.einsum("rac,rakl,rad->rkcld", T, P, T).reshape(R, 9, 9)
-        level_out[:, k] = np.einsum("rab,ra->rb", T, u)
+        out_x[:, k] = einsum("rab,rak->rkb", T, x).reshape(R, 9)
+        out_P[:, k] = einsum("rac,rakl,rad->rkcld", T, P, T).reshape(R, 9, 9)
+        level_out[:, k] = einsum("rab,ra->rb", T, u)
 
     def _respond(self, sens: np.ndarray, dT: np.ndarray, gain: np.ndarray) -> np.ndarray:
         """One scan of d x / d eps for a level error eps held in the (rotating) LOS frame:
         x^k = (I - K H) dT9 [F x^{k-1} + G u^{k-1}] and eps^{k-1} = dT' eps^k."""
-        Y = np.einsum("kl,ralj->rakj", self.F, sens) + self.G[None, None, :, None] * np.eye(3)[None, :, None, :]
-        Y = np.einsum("rab,rbkj->rakj", dT, Y)
-        Y = np.einsum("rakm,rjm->rakj", Y, dT)
+        Y = einsum("kl,ralj->rakj", self.F, sens) + self.G[None, None, :, None] * np.eye(3)[None, :, None, :]
+        Y = einsum("rab,rbkj->rakj", dT, Y)
+        Y = einsum("rakm,rjm->rakj", Y, dT)
         return Y - gain[:, :, :, None] * Y[:, :, 0:1, :]
 
     def _mie(self, k, hyps, armed, x, P, u, level_cov, T, k_c, sens, zI, frames, x_hist, pvv_hist, nu_hist, s_hist,
@@ -278,13 +279,13 @@ class LOSMIE(_MIEBase):
         innov_mask = (~pseudo) & (window[None, :] >= 2)
         # innovations of the samples i <= n (eq 24, first sum)
         q = nu_hist[:, window] ** 2 / s_hist[:, window]                        # (R, D, 3)
-        innov = np.einsum("hd,rda->hra", innov_mask, q)
+        innov = einsum("hd,rda->hra", innov_mask, q)
         # pseudo-residuals in frame n (eq 26) and their decoupled covariance (eq 23)
         Tn = frames[:, onsets]                                                 # (R, H, 3, 3)
         v_n = x_hist[:, onsets][:, :, :, 1]                                    # (R, H, 3)
         tpvv = dt * dt * pvv_hist[:, onsets]                                   # (R, H, 3)
         dz = zI[:, window] - zI[:, window - 1]                                 # (R, D, 3)
-        e = np.einsum("rhab,rdb->rhda", Tn, dz) - dt * v_n[:, :, None, :]      # (R, H, D, 3)
+        e = einsum("rhab,rdb->rhda", Tn, dz) - dt * v_n[:, :, None, :]      # (R, H, D, 3)
         S = tpvv[:, :, None, :] + r_hist[:, window][:, None] + r_hist[:, window - 1][:, None]
         N = np.where(pseudo, (window[None, :] - onsets[:, None] - 0.5) * dt * dt, 0.0)   # eq 25 (notes 2.4)
         if self.pseudo_residual_covariance == "diagonal":
@@ -303,13 +304,13 @@ class LOSMIE(_MIEBase):
         L = -0.5 * np.moveaxis(innov, 0, 1) - 0.5 * quad + 0.5 * u_hat * u_hat * A     # eqs 29-30
         # the old level and its covariance seen in frame n
         rot = Tn @ np.swapaxes(T, 1, 2)[:, None]                               # (R, H, 3, 3)
-        u_old = np.einsum("rhab,rb->rha", rot, u)
+        u_old = einsum("rhab,rb->rha", rot, u)
         cov_n = rot @ level_cov[:, None] @ np.swapaxes(rot, 2, 3)
         if self.level_correlation:
             # Delta's error = xi - (I + c T J_v(n)) eps: the compensated velocity v_hat(n) carries
             # J_v(n) eps and biases u_hat by -c T J_v(n) eps (c = sum N/S / sum N^2/S)
             gain_eps = np.eye(3) + (w_sum / A)[..., None] * dt * sens_v_hist[:, onsets]
-            old_var = np.einsum("rhab,rhbc,rhac->rha", gain_eps, cov_n, gain_eps)
+            old_var = einsum("rhab,rhbc,rhac->rha", gain_eps, cov_n, gain_eps)
         else:
             gain_eps = np.broadcast_to(np.eye(3), cov_n.shape)
             old_var = np.diagonal(cov_n, axis1=2, axis2=3)
@@ -358,16 +359,16 @@ class LOSMIE(_MIEBase):
                 for h, d in enumerate(hyps):
                     on_h = soft & (best_axes == h)
                     if on_h.any():
-                        eps_k += np.einsum("rab,rb->ra", T @ np.swapaxes(frames[:, k - d], 1, 2), eps_n * on_h)
+                        eps_k += einsum("rab,rb->ra", T @ np.swapaxes(frames[:, k - d], 1, 2), eps_n * on_h)
                 u = u - eps_k
-                x = x - np.einsum("rakj,rj->rak", sens, eps_k)
+                x = x - einsum("rakj,rj->rak", sens, eps_k)
                 # the update is per axis, i.e. treats the axes' level errors as independent: keep the level
                 # covariance diagonal for these runs (the diagonal of a PSD matrix is PSD; writing only the
                 # diagonal beside stale off-diagonal terms can make it indefinite)
                 diag = np.diagonal(level_cov, axis1=1, axis2=2)
                 touched = soft.any(axis=1)
                 new_diag = np.where(soft, np.maximum(post, 0.0), diag)
-                level_cov = np.where(touched[:, None, None], np.einsum("ra,ab->rab", new_diag, np.eye(3)), level_cov)
+                level_cov = np.where(touched[:, None, None], einsum("ra,ab->rab", new_diag, np.eye(3)), level_cov)
         if not (self.compensate and det_axes.any()):
             return x, P, u, level_cov, T, k_c, sens, det_axes, stat, onset
 
@@ -378,7 +379,7 @@ class LOSMIE(_MIEBase):
             # the new level's error is xi - (G - I) eps: keep (G - I) Sigma_old (G - I)' in its covariance
             Kc = gain_eps - np.eye(3)
             sigma_level = sigma + np.where(det_axes, self._pick(np.moveaxis(
-                np.einsum("rhab,rhbc,rhac->rha", Kc, cov_n, Kc), 1, 0), best_axes), 0.0)
+                einsum("rhab,rhbc,rhac->rha", Kc, cov_n, Kc), 1, 0), best_axes), 0.0)
         else:
             sigma_level = sigma
         dx = np.zeros_like(x)
@@ -395,24 +396,24 @@ class LOSMIE(_MIEBase):
             M[hit] = self._gain_matrix(n, k, frames[hit], gain_hist[hit])                      # (R, a, kin, j)
             M = M * use[:, None, None, :]
             # the new level's error enters the state through M (in frame n): re-express it in frame k
-            sens = np.where(use[:, None, None, :], 0.0, sens) + np.einsum(
+            sens = np.where(use[:, None, None, :], 0.0, sens) + einsum(
                 "rakm,rjm->rakj", M, T @ np.swapaxes(frames[:, n], 1, 2))
-            dx += np.einsum("rakj,rj->rak", M, delta)
-            dP += np.einsum("rakj,rj,ralj->rakl", M, sigma, M)                                  # eq 37, per-axis blocks
-            du += np.einsum("rab,rb->ra", T @ np.swapaxes(frames[:, n], 1, 2), delta * use)     # eq 38
+            dx += einsum("rakj,rj->rak", M, delta)
+            dP += einsum("rakj,rj,ralj->rakl", M, sigma, M)                                  # eq 37, per-axis blocks
+            du += einsum("rab,rb->ra", T @ np.swapaxes(frames[:, n], 1, 2), delta * use)     # eq 38
             new_cov += np.where(use, sigma_level, 0.0)
         x, P, u = x + dx, P + dP, u + du
         # the level's covariance: the detected axes' estimates replace the old ones
         keep = ~det_axes
-        level_cov = level_cov * (keep[:, :, None] & keep[:, None, :]) + np.einsum("ra,ab->rab", new_cov, np.eye(3))
+        level_cov = level_cov * (keep[:, :, None] & keep[:, None, :]) + einsum("ra,ab->rab", new_cov, np.eye(3))
         # eqs 39-44: re-point the frame at the compensated position (P is not rotated)
         moved = det_axes.any(axis=1)
         _, dphi, dth = line_of_sight_angles(x[:, :, 0])
         dTu = np.where(moved[:, None, None], los_rotation(dphi, dth), np.eye(3))
-        x = np.einsum("rab,rbk->rak", dTu, x)
-        u = np.einsum("rab,rb->ra", dTu, u)
+        x = einsum("rab,rbk->rak", dTu, x)
+        u = einsum("rab,rb->ra", dTu, u)
         level_cov = dTu @ level_cov @ np.swapaxes(dTu, 1, 2)
-        sens = np.einsum("rab,rbkm,rjm->rakj", dTu, sens, dTu)
+        sens = einsum("rab,rbkm,rjm->rakj", dTu, sens, dTu)
         T = dTu @ T
         k_c = np.where(det_axes if self.test == "per_axis" else moved[:, None], k, k_c)
         return x, P, u, level_cov, T, k_c, sens, det_axes, stat, onset
@@ -448,9 +449,9 @@ class LOSMIE(_MIEBase):
         ev = np.where(pseudo[None, :, None, :], np.moveaxis(e, 3, 2), 0.0)
         sol = np.linalg.solve(C, np.stack([Nv, ev], axis=-1))
         CiN, Cie = sol[..., 0], sol[..., 1]
-        A = np.einsum("rhad,rhad->rha", Nv, CiN)
-        u_hat = np.einsum("rhad,rhad->rha", CiN, ev) / A
-        quad = np.einsum("rhad,rhad->rha", ev, Cie)
+        A = einsum("rhad,rhad->rha", Nv, CiN)
+        u_hat = einsum("rhad,rhad->rha", CiN, ev) / A
+        quad = einsum("rhad,rhad->rha", ev, Cie)
         return A, u_hat, quad, CiN.sum(axis=3), 1.0 / A
 
     def _gain_matrix(self, n: int, k: int, frames: np.ndarray, gain_hist: np.ndarray) -> np.ndarray:
@@ -461,9 +462,9 @@ class LOSMIE(_MIEBase):
         M[:, [0, 1, 2], 2, [0, 1, 2]] = 1.0
         Tn_t = np.swapaxes(frames[:, n], 1, 2)
         for i in range(n + 1, k + 1):
-            Y = np.einsum("kl,ralj->rakj", self.F, M) + self.G[None, None, :, None] * (frames[:, i - 1] @ Tn_t)[:, :, None, :]
+            Y = einsum("kl,ralj->rakj", self.F, M) + self.G[None, None, :, None] * (frames[:, i - 1] @ Tn_t)[:, :, None, :]
             dT = frames[:, i] @ np.swapaxes(frames[:, i - 1], 1, 2)
-            Y = np.einsum("rab,rbkj->rakj", dT, Y)
+            Y = einsum("rab,rbkj->rakj", dT, Y)
             M = Y - gain_hist[:, i][:, :, :, None] * Y[:, :, 0:1, :]
         return M
 
@@ -526,13 +527,13 @@ class InertialMIE(_MIEBase):
         x_hist[:, 1], pvv_hist[:, 1] = x, P[:, vel][:, :, vel]
         self._output(out_x, out_P, level_out, 1, x, P, u)
         for k in range(2, K):
-            x = x @ F9.T + u @ G9.T
+            x = rows_times(x, F9.T) + rows_times(u, G9.T)
             P = F9 @ P @ F9.T + Q9
             S = P[:, pos][:, :, pos] + RI[:, k]
             S_inv = np.linalg.inv(S)
             gain = P[:, :, pos] @ S_inv
             nu = zI[:, k] - x[:, pos]
-            x = x + np.einsum("rij,rj->ri", gain, nu)
+            x = x + einsum("rij,rj->ri", gain, nu)
             P = P - gain @ S @ np.swapaxes(gain, 1, 2)
             P = 0.5 * (P + np.swapaxes(P, 1, 2))
             Y = F9 @ sens + G9                                          # the filter's response to a level error
@@ -573,7 +574,7 @@ class InertialMIE(_MIEBase):
             n = k - d
             innov = np.zeros(R)
             for i in range(max(first, 2), n + 1):
-                innov += np.einsum("ri,rij,rj->r", nu_hist[:, i], sinv_hist[:, i], nu_hist[:, i])
+                innov += einsum("ri,rij,rj->r", nu_hist[:, i], sinv_hist[:, i], nu_hist[:, i])
             v_n = x_hist[:, n, vel]
             tpvv = dt * dt * pvv_hist[:, n]
             A = np.zeros((R, 3, 3))
@@ -586,8 +587,8 @@ class InertialMIE(_MIEBase):
                 S_inv = np.linalg.inv(tpvv + RI[:, i] + RI[:, i - 1])
                 N_i = (i - n - 0.5) * dt * dt
                 A += N_i * N_i * S_inv
-                b += N_i * np.einsum("rij,rj->ri", S_inv, e)
-                quad += np.einsum("ri,rij,rj->r", e, S_inv, e)
+                b += N_i * einsum("rij,rj->ri", S_inv, e)
+                quad += einsum("ri,rij,rj->r", e, S_inv, e)
                 weighted.append((N_i * S_inv, RI[:, i]))
                 W += N_i * S_inv
             A_inv = np.linalg.inv(A)
@@ -598,8 +599,8 @@ class InertialMIE(_MIEBase):
                 gain_eps = np.broadcast_to(np.eye(3), level_cov.shape)
                 old_covs.append(level_cov)
             gains.append(gain_eps)
-            u_hat = np.einsum("rij,rj->ri", A_inv, b)
-            L = -0.5 * innov - 0.5 * quad + 0.5 * np.einsum("ri,rij,rj->r", u_hat, A, u_hat)
+            u_hat = einsum("rij,rj->ri", A_inv, b)
+            L = -0.5 * innov - 0.5 * quad + 0.5 * einsum("ri,rij,rj->r", u_hat, A, u_hat)
             cross = np.zeros((R, 3, 3))
             m = len(weighted)
             for a_i in range(m):
@@ -617,7 +618,7 @@ class InertialMIE(_MIEBase):
         sigma_u = covs[best, rows]
         V = sigma_u + (np.stack(old_covs)[best, rows] if self.level_uncertainty else 0.0)
         if self.test == "full":
-            stat = np.einsum("ri,rij,rj->r", delta, np.linalg.inv(V), delta)
+            stat = einsum("ri,rij,rj->r", delta, np.linalg.inv(V), delta)
         else:
             stat = (delta * delta / np.diagonal(V, axis1=1, axis2=2)).sum(axis=1)
         det = ok & (stat > self.threshold)
@@ -630,9 +631,9 @@ class InertialMIE(_MIEBase):
             if soft.any():
                 SG = level_cov @ np.swapaxes(G, 1, 2)
                 gain = SG @ np.linalg.inv(sigma_u + G @ SG)
-                eps = -np.einsum("rij,rj->ri", gain, delta) * soft[:, None]
+                eps = -einsum("rij,rj->ri", gain, delta) * soft[:, None]
                 u = u - eps
-                x = x - np.einsum("rij,rj->ri", sens, eps)
+                x = x - einsum("rij,rj->ri", sens, eps)
                 level_cov = np.where(soft[:, None, None], level_cov - gain @ np.swapaxes(SG, 1, 2), level_cov)
         if not (self.compensate and det.any()):
             return x, P, u, level_cov, k_c, sens, det, stat, onset
@@ -651,7 +652,7 @@ class InertialMIE(_MIEBase):
                 Y = F9 @ Mh + G9
                 Mh = Y - gain_hist[hit, i] @ (H @ Y)
             M[hit] = Mh
-        x = x + np.einsum("rij,rj->ri", M, delta)                                # eq 34
+        x = x + einsum("rij,rj->ri", M, delta)                                # eq 34
         P = P + M @ np.where(det[:, None, None], sigma_u, 0.0) @ np.swapaxes(M, 1, 2)   # eq 37
         u = u + delta                                                            # eq 38
         Kc = G - np.eye(3)                               # the new level's error is xi - (G - I) eps

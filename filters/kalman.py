@@ -12,18 +12,39 @@ LOG_2PI = float(np.log(2.0 * np.pi))
 
 
 def times_shared(A: np.ndarray, M: np.ndarray) -> np.ndarray:
-    """A @ M for a stack A (..., p, q) and one shared M (q, r), as a single 2-D BLAS product.
+    """A @ M for a stack A (..., p, q) and one shared M (q, r), one product per matrix.
 
-    numpy's stacked matmul runs one tiny product per matrix; folding the stack into the rows
-    of one (N*p, q) matrix is 5-10x faster for the 2x2..9x9 matrices of tracking filters.
+    Folding the stack into the rows of one (N*p, q) BLAS product was faster for the smallest
+    matrices, but BLAS picks its kernel (and so its rounding) by the row count: a run's result
+    then depended on how many runs were filtered with it. Stacked matmul computes each matrix on
+    its own, so chunking the Monte Carlo runs (mc.chunk_runs) gives bit-identical results.
     """
-    return (A.reshape(-1, A.shape[-1]) @ M).reshape(A.shape[:-1] + (M.shape[-1],))
+    return A @ M
 
 
 def shared_times(M: np.ndarray, A: np.ndarray) -> np.ndarray:
-    """M @ A for one shared M (r, p) and a stack A (..., p, q): (A' M')' via times_shared."""
-    At = np.ascontiguousarray(np.swapaxes(A, -1, -2))
-    return np.swapaxes(times_shared(At, M.T), -1, -2)
+    """M @ A for one shared M (r, p) and a stack A (..., p, q), one product per matrix."""
+    return M @ A
+
+
+def einsum(subscripts: str, *operands: np.ndarray) -> np.ndarray:
+    """np.einsum on C-contiguous copies of its operands.
+
+    einsum picks its loop order and vectorised sums from the operands' strides: on a transposed
+    or moved-axis view, a run's result can differ in the last bit depending on how many runs
+    share the batch. Contiguous operands keep each run's arithmetic the same for any batch size
+    (mc.chunk_runs is bit-identical, tested); the copy is skipped when already contiguous.
+    """
+    return np.einsum(subscripts, *(np.ascontiguousarray(o) for o in operands))
+
+
+def rows_times(x: np.ndarray, M: np.ndarray) -> np.ndarray:
+    """x @ M for vectors x (..., q) and a matrix M (q, r), one product per vector.
+
+    A 2-D ``x @ M`` with the runs as rows is one BLAS call whose rounding depends on the number
+    of rows; this keeps each run's result independent of the batch (see times_shared).
+    """
+    return (x[..., None, :] @ M)[..., 0, :]
 
 
 def predict(x: np.ndarray, P: np.ndarray, F: np.ndarray, Q: np.ndarray,
@@ -34,10 +55,10 @@ def predict(x: np.ndarray, P: np.ndarray, F: np.ndarray, Q: np.ndarray,
     F and Q may be shared (n, n) or stacked like P.
     """
     if F.ndim > 2:
-        x_pred = np.einsum("...ij,...j->...i", F, x)
+        x_pred = einsum("...ij,...j->...i", F, x)
         P_pred = F @ P @ np.swapaxes(F, -1, -2) + Q
     else:
-        x_pred = x @ F.T
+        x_pred = rows_times(x, F.T)
         P_pred = shared_times(F, times_shared(P, F.T)) + Q
     if offset is not None:
         x_pred = x_pred + offset
@@ -78,15 +99,15 @@ def update(x: np.ndarray, P: np.ndarray, z: np.ndarray, H: np.ndarray, R: np.nda
     Returns the posterior mean and covariance and the log-likelihood
     log N(z; H x, H P H' + R) of the measurement under this prior.
     """
-    innovation = z - x @ H.T
+    innovation = z - rows_times(x, H.T)
     PHt = times_shared(P, H.T)
     S = shared_times(H, PHt) + R
     S_inv, logdet = inverse_and_logdet(S)
     gain = PHt @ S_inv
-    x_post = x + np.einsum("...ij,...j->...i", gain, innovation)
+    x_post = x + einsum("...ij,...j->...i", gain, innovation)
     P_post = P - gain @ np.swapaxes(PHt, -1, -2)
     P_post = 0.5 * (P_post + np.swapaxes(P_post, -1, -2))
-    mahalanobis = np.einsum("...i,...ij,...j->...", innovation, S_inv, innovation)
+    mahalanobis = einsum("...i,...ij,...j->...", innovation, S_inv, innovation)
     log_likelihood = -0.5 * (mahalanobis + logdet + H.shape[0] * LOG_2PI)
     return x_post, P_post, log_likelihood
 

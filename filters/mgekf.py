@@ -55,12 +55,12 @@ zero with variance sigma_m^2.
 from __future__ import annotations
 
 import time as _time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from filters.base import TrackEstimate
-from filters.kalman import shared_times, times_shared
+from filters.kalman import einsum, rows_times, shared_times, times_shared
 from filters.models import singer_process_noise, singer_transition
 
 STATE_NAMES = ("x", "y", "vx", "vy", "ax", "ay")
@@ -166,7 +166,7 @@ def nonlinear_update(x: np.ndarray, P: np.ndarray, z: np.ndarray, active: bool, 
     PHt = P @ np.swapaxes(H, -1, -2)
     S = H @ PHt + R
     gain = np.swapaxes(np.linalg.solve(S, np.swapaxes(PHt, -1, -2)), -1, -2)
-    x_new = x + np.einsum("rij,rj->ri", gain, residual)
+    x_new = x + einsum("rij,rj->ri", gain, residual)
     if modified:
         G = _pad(np.stack([bearing_g_row(position, z[..., 0], bearing_form, clamp),
                            range_g_row(position, z[..., 0])], -2), n)
@@ -222,7 +222,7 @@ def converted_update(x: np.ndarray, P: np.ndarray, z: np.ndarray, bearing_std: f
     PHt = P[..., :, :2]
     S = P[..., :2, :2] + R
     gain = np.swapaxes(np.linalg.solve(S, np.swapaxes(PHt, -1, -2)), -1, -2)
-    x_new = x + np.einsum("rij,rj->ri", gain, converted - x[..., :2])
+    x_new = x + einsum("rij,rj->ri", gain, converted - x[..., :2])
     A = np.broadcast_to(np.eye(n), P.shape) - gain @ H
     P_new = A @ P @ np.swapaxes(A, -1, -2) + gain @ R @ np.swapaxes(gain, -1, -2)
     return x_new, 0.5 * (P_new + np.swapaxes(P_new, -1, -2))
@@ -260,6 +260,16 @@ class SonarReports:
             raise ValueError("SonarReports: the trackers start from an active (range + bearing) first scan")
         if np.any(np.diff(self.time) <= 0):
             raise ValueError("SonarReports: scan times must increase")
+
+    @property
+    def runs(self) -> int:
+        return self.z.shape[0]
+
+    def select(self, runs) -> "SonarReports":
+        """The same scans for a subset of runs (a chunk of the Monte Carlo)."""
+        index = np.asarray(runs, dtype=int)
+        return replace(self, z=self.z[index], ownship_acceleration=self.ownship_acceleration[index],
+                       ownship_velocity0=self.ownship_velocity0[index])
 
 
 class _SonarTracker:
@@ -329,7 +339,7 @@ class _SonarTracker:
     @staticmethod
     def _predict(x, P, u, model):
         Phi, Gamma, Q = model
-        return x @ Phi.T + u @ Gamma.T, shared_times(Phi, times_shared(P, Phi.T)) + Q
+        return rows_times(x, Phi.T) + rows_times(u, Gamma.T), shared_times(Phi, times_shared(P, Phi.T)) + Q
 
 
 class OnlyMGEKF(_SonarTracker):

@@ -50,6 +50,7 @@ from typing import Sequence
 import numpy as np
 
 from filters.base import TrackEstimate
+from filters.kalman import einsum, rows_times
 
 TARGET_STATES = ("x", "y", "vx", "vy")
 BUOYS = 4
@@ -578,7 +579,7 @@ class BearingsEKF(_ModelParameters):
         for k in range(1, K):
             dt = float(reports.time[k] - reports.time[k - 1])
             F = np.kron(np.eye(5), cv_transition(dt))
-            x = x @ F.T
+            x = rows_times(x, F.T)
             P = F @ P @ F.T + self._process_noise(dt)
             z = reports.z[:, k]
             H = bearing_jacobian(x, observer)                                              # (R, 8, 20)
@@ -592,7 +593,7 @@ class BearingsEKF(_ModelParameters):
             PHt = P @ np.swapaxes(H, -1, -2)
             S = H @ PHt + Rm
             gain = np.swapaxes(np.linalg.solve(S, np.swapaxes(PHt, -1, -2)), -1, -2)
-            x = x + np.einsum("rij,rj->ri", gain, residual)
+            x = x + einsum("rij,rj->ri", gain, residual)
             A = np.eye(20) - gain @ H
             P = A @ P @ np.swapaxes(A, -1, -2) + gain @ Rm @ np.swapaxes(gain, -1, -2)
             P = 0.5 * (P + np.swapaxes(P, -1, -2))

@@ -86,3 +86,18 @@ def test_the_launcher_does_not_change_the_tables(tmp_path):
     for a, b in zip(basic, joblib):
         assert_same_tables(a, b)
 
+
+
+@pytest.mark.parametrize("experiment, overrides", [
+    ("ao_vsimm_s1", ["mc.runs=9", "scenario.steps=40"]),
+    ("mie_los", ["mc.runs=9"]),
+    ("async_bias", ["mc.runs=9", "scenario.duration=20"]),
+    ("sonar_case2", ["mc.runs=9", "scenario.duration=600"]),
+    ("sonobuoy_case2", ["mc.runs=9", "scenario.duration=60", "target_model.particles=50"]),
+])
+def test_chunks_of_runs_give_the_same_tables_as_all_runs_at_once(tmp_path, experiment, overrides):
+    whole = in_process(tmp_path / "whole", "whole", f"experiment={experiment}", *overrides)
+    for chunk in (1, 7):
+        chunked = in_process(tmp_path / f"chunk{chunk}", "chunked", f"experiment={experiment}",
+                             f"mc.chunk_runs={chunk}", *overrides)
+        assert_same_tables(whole, chunked)
