@@ -468,8 +468,8 @@ class VSIMM(_IMMBase):
             if not 0.0 <= value <= 1.0:
                 raise ValueError(f"{key}: {value} must be a probability in [0, 1]")
         for key, value in (("t1_mu", t1_mu), ("t2_mu", t2_mu), ("t1_L", t1_L), ("t2_L", t2_L)):
-            if not value > 0:
-                raise ValueError(f"{key}: {value} must be a positive ratio threshold")
+            if not (np.isfinite(value) and value > 0):
+                raise ValueError(f"{key}: {value} must be a finite positive ratio threshold")
         if t1_mu > t2_mu or t1_L > t2_L:
             raise ValueError(f"thresholds: need t1_mu <= t2_mu and t1_L <= t2_L, got t1_mu={t1_mu}, "
                              f"t2_mu={t2_mu}, t1_L={t1_L}, t2_L={t2_L}")

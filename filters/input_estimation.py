@@ -69,10 +69,10 @@ class _MIEBase:
                  level_correlation: bool) -> None:
         if test not in self.TESTS:
             raise ValueError(f"test: {test!r} is not one of {list(self.TESTS)}")
-        if not tau > 0:
-            raise ValueError(f"tau: {tau} must be > 0 s")
-        if not sigma_m > 0:
-            raise ValueError(f"sigma_m: {sigma_m} must be > 0 m/s^2")
+        if not (np.isfinite(tau) and tau > 0):
+            raise ValueError(f"tau: {tau} must be a finite number > 0 s")
+        if not (np.isfinite(sigma_m) and sigma_m > 0):
+            raise ValueError(f"sigma_m: {sigma_m} must be a finite number > 0 m/s^2")
         if not (isinstance(window, int) and isinstance(min_samples, int) and 1 <= min_samples <= window):
             raise ValueError(f"window, min_samples: need integers with 1 <= min_samples <= window, "
                              f"got window={window}, min_samples={min_samples}")

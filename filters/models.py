@@ -135,8 +135,8 @@ class AccelerationModelSet:
         group_array = np.full((len(members), size), -1, dtype=np.int64)
         for gi, m in enumerate(members):
             group_array[gi, : len(m)] = m
-        if not float(process_noise_std) >= 0:
-            raise ValueError(f"process_noise_std: {process_noise_std} must be >= 0 (m/s^2)")
+        if not (np.isfinite(float(process_noise_std)) and float(process_noise_std) >= 0):
+            raise ValueError(f"process_noise_std: {process_noise_std} must be a finite number >= 0 (m/s^2)")
         if not float(dt) > 0:
             raise ValueError(f"dt: {dt} must be > 0 (s)")
         return cls(names, np.array(acc), group_names, group_array, tpm, float(process_noise_std), float(dt))
