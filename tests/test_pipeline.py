@@ -113,6 +113,17 @@ def test_truncated_or_foreign_cache_file_is_rejected_and_recomputed(tmp_path, ca
     assert "it holds table 'truth', expected 'detections'" in caplog.text
     assert measure_file.read_bytes() != scenario_bytes and len(measure_file.read_bytes()) == len(measure_bytes)
 
+    # the same table made under another config (another key in its metadata), e.g. copied by hand
+    run_in_process(tmp_path, "other", "mc.runs=2", "scenario.steps=30", "mc.seed=5")
+    other = next(f for f in (tmp_path / "cache" / "scenario").glob("*.parquet") if f != scenario_file)
+    scenario_file.write_bytes(other.read_bytes())
+    caplog.clear()
+    out, ctx = run_in_process(tmp_path, "e", "mc.runs=2", "scenario.steps=30")
+    assert f"its cache key is '{other.stem}', expected '{scenario_file.stem}'" in caplog.text
+    assert "[scenario] computed" in caplog.text
+    _, fresh = run_in_process(tmp_path, "f", "mc.runs=2", "scenario.steps=30", "cache.enabled=false")
+    assert pl.read_parquet(ctx.run_dir / "truth.parquet").equals(pl.read_parquet(fresh.run_dir / "truth.parquet"))
+
 
 @pytest.mark.parametrize("overrides, message", [
     (["mc.runs=0"], "mc.runs: 0 is not allowed; the number of Monte Carlo runs must be an integer >= 1"),
