@@ -523,12 +523,16 @@ def filter_jump_markov(model, tpm: np.ndarray, time: np.ndarray, z: np.ndarray, 
         cloud_modes = np.full((R, K, P), -1, dtype=np.int8)
         cloud[:, 0], cloud_modes[:, 0] = X[:, spaced], 0
     run_index = np.arange(R)[:, None]
+    underflow = np.zeros((R, K), dtype=bool)
     for k in range(1, K):
         dt = float(time[k] - time[k - 1])
         zk = z[:, k]
         if auxiliary:
             first, context = model.first_stage(X, zk, dt)                          # (R, N, M), eq 16
             log_lambda = log_tpm[modes] + first                                     # weights are uniform after resampling
+            log_lambda, lost = _restart_if_underflowed(log_lambda.reshape(R, M * N))
+            underflow[:, k] |= lost
+            log_lambda = log_lambda.reshape(R, N, M)
             pick = systematic_resample(log_lambda.reshape(R, M * N), _stack(gens, lambda g: g.random()), N)
             parent, new_mode = pick // M, pick % M
             first_at_pick = np.take_along_axis(first.reshape(R, M * N), pick, axis=1)
@@ -540,7 +544,9 @@ def filter_jump_markov(model, tpm: np.ndarray, time: np.ndarray, z: np.ndarray, 
         # float32 normals: half the generator time; they only scale small perturbations
         noise = _stack(gens, lambda g: g.standard_normal((N,) + tuple(model.noise_shape), dtype=np.float32))
         X_new = model.propagate(X, parent, new_mode, noise, dt, context)              # eq 15
-        weights = normalise_log(model.log_likelihood(X_new, zk) - first_at_pick)       # eq 17
+        log_weights, lost = _restart_if_underflowed(model.log_likelihood(X_new, zk) - first_at_pick)
+        underflow[:, k] |= lost
+        weights = normalise_log(log_weights)                                           # eq 17
         states[:, k], covariances[:, k] = weighted_moments(X_new, weights)
         mode_probability[:, k] = np.stack([np.sum(weights * (new_mode == m), axis=1) for m in range(M)], -1)
         ess[:, k] = 1.0 / np.sum(weights**2, axis=1)
@@ -551,10 +557,19 @@ def filter_jump_markov(model, tpm: np.ndarray, time: np.ndarray, z: np.ndarray, 
             X = liu_west(X, lw_h, _stack(gens, lambda g: g.standard_normal((N, n), dtype=np.float32)))
         if P:
             cloud[:, k], cloud_modes[:, k] = X[:, spaced], modes[:, spaced]
-    extras = {"mode_probabilities": mode_probability, "ess": ess}
+    extras = {"mode_probabilities": mode_probability, "ess": ess, "weights_underflow": underflow}
     if P:
         extras.update(particles=cloud, particle_modes=cloud_modes)
     return states, covariances, extras
+
+
+def _restart_if_underflowed(log_weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(R, M) log weights -> the same, with a run whose every weight underflowed (all -inf, or NaN)
+    restarted from uniform weights, and (R,) which runs that was. The run goes on (its cloud is
+    kept, its estimate flagged ``weights_underflow``) instead of turning into NaN."""
+    log_weights = np.where(np.isnan(log_weights), -np.inf, log_weights)
+    lost = ~np.isfinite(log_weights.max(axis=1))
+    return np.where(lost[:, None], 0.0, log_weights), lost
 
 
 class BearingsEKF(_ModelParameters):

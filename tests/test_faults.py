@@ -96,3 +96,33 @@ def test_the_pipeline_flags_injected_faults_per_run_and_step_and_counts_them(tmp
     # the other runs' results are kept: the RMSE of the diverged steps comes from the 4 healthy runs
     rmse = outcome.metrics.filter((pl.col("variant_key") == "fsimm") & (pl.col("metric") == "position_rmse"))
     assert rmse.filter(pl.col("step") >= 20)["value"].is_finite().all()
+
+
+@pytest.mark.parametrize("auxiliary", [True, False])
+def test_a_particle_filter_whose_weights_all_underflow_restarts_them_and_flags_the_step(monkeypatch, auxiliary):
+    from filters import particle
+    from filters.particle import MultipleModelParticleFilter
+    from tests.test_particle import _reports
+
+    _, reports = _reports(runs=3, duration=60.0)
+    healthy = MultipleModelParticleFilter(particles=100, auxiliary=auxiliary, chunk_runs=3, workers=1).run(reports)
+    original = particle.SonobuoyModel.log_likelihood
+    calls = []
+
+    def underflowing(self, X, z):                       # run 1's likelihood is 0 for every particle at scan 4
+        out = original(self, X, z)
+        calls.append(None)
+        if len(calls) == 4:
+            out = out.copy()
+            out[1] = -np.inf
+        return out
+
+    monkeypatch.setattr(particle.SonobuoyModel, "log_likelihood", underflowing)
+    broken = MultipleModelParticleFilter(particles=100, auxiliary=auxiliary, chunk_runs=3, workers=1).run(reports)
+    flags = broken.extras["weights_underflow"]
+    assert flags.shape == (3, reports.time.size) and flags.sum() == 1 and flags[1].any()
+    assert np.isfinite(broken.state).all()              # the run goes on from uniform weights
+    np.testing.assert_array_equal(broken.state[[0, 2]], healthy.state[[0, 2]])   # the other runs are untouched
+    assert not healthy.extras["weights_underflow"].any()
+    masks = fault_flags(broken.state, broken.covariance, weights_underflow=flags)
+    assert (masks[1] == FAULTS["weights_underflow"]).sum() == 1
