@@ -126,3 +126,27 @@ def test_a_particle_filter_whose_weights_all_underflow_restarts_them_and_flags_t
     assert not healthy.extras["weights_underflow"].any()
     masks = fault_flags(broken.state, broken.covariance, weights_underflow=flags)
     assert (masks[1] == FAULTS["weights_underflow"]).sum() == 1
+
+
+def test_the_nees_bound_flags_diverging_steps_through_the_pipeline(tmp_path):
+    import polars as pl
+    from hydra import compose, initialize_config_dir
+
+    from pipeline.runner import RunContext, run_experiment
+    from tests.conftest import CONF
+
+    def run(name, bound):
+        overrides = ["mc.runs=4", "scenario.steps=30", "variants=[fsimm]", f"faults.nees_bound={bound}"]
+        with initialize_config_dir(version_base="1.3", config_dir=str(CONF)):
+            cfg = compose("config", overrides=[f"paths.artifacts={tmp_path}", "record.enabled=false", *overrides])
+        ctx = RunContext(tmp_path / "runs" / name, tmp_path, overrides)
+        return run_experiment(cfg, ctx), ctx
+
+    _, loose = run("loose", 1e9)
+    outcome, tight = run("tight", 1e-3)               # far below any NEES: every estimated step diverges
+    assert (pl.read_parquet(loose.run_dir / "estimates" / "fsimm.parquet")["fault"] == 0).all()
+    table = pl.read_parquet(tight.run_dir / "estimates" / "fsimm.parquet")
+    started = table.filter(pl.col("x").arr.first().is_not_nan())
+    assert (started["fault"] == FAULTS["nees_above_bound"]).all()
+    diverged = outcome.summary.filter(pl.col("metric") == "fault_runs_nees_above_bound")["value"][0]
+    assert diverged == 4

@@ -53,6 +53,13 @@ class SingleTargetStudy:
         return schemas.estimate_to_frame(estimate, truth.state_names)
 
     @staticmethod
+    def fault_flags(estimate, truth, checks) -> np.ndarray:
+        """pipeline.stages.faults masks, with the NEES test against target 0's truth."""
+        from pipeline.stages.faults import fault_flags
+        return fault_flags(estimate.state, estimate.covariance, checks, estimate.state - truth.state[:, :, 0, :],
+                           estimate.extras.get("weights_underflow"))
+
+    @staticmethod
     def per_step_metrics(truth, estimate, sensor) -> dict[str, np.ndarray]:
         from pipeline.stages.evaluate import per_step_metrics
         return per_step_metrics(truth, estimate)
