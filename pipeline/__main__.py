@@ -26,7 +26,9 @@ def main(cfg: DictConfig) -> float | None:
     hc = HydraConfig.get()
     multirun = hc.mode == RunMode.MULTIRUN
     run_dir = Path(hc.runtime.output_dir)
-    artifacts = Path(str(cfg.paths.artifacts))
+    # relative to where the run or sweep was started (hydra.runtime.cwd is recorded there), not to
+    # this process's working directory: a Ray worker of an existing cluster starts elsewhere
+    artifacts = Path(str(hc.runtime.cwd)) / str(cfg.paths.artifacts)
     sweep = None
     if multirun:
         try:

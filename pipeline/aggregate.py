@@ -3,18 +3,26 @@
 Hydra calls ``SweepSummary.on_multirun_end`` after a multirun. Jobs never raise out of the task
 function (they record their failure instead), so the callback runs even when a job failed; it is
 also a CLI for a sweep that was interrupted: ``python -m pipeline.aggregate <sweep_dir>``.
+
+``SweepSummary.on_multirun_start`` runs in the driver before any job is launched and pins the
+sweep directory to an absolute path (the driver's working directory + the configured, usually
+relative, ``hydra.sweep.dir``). Launchers that run jobs in other processes re-compose each job's
+config there and resolve relative paths against that process's working directory: Ray workers of
+an existing cluster start in the directory where ``ray start`` ran, so without the pin their job
+folders (and Hydra's ``.hydra/``) would land outside the sweep folder this callback aggregates.
 """
 
 from __future__ import annotations
 
 import json
 import logging
+import re
 import sys
 from pathlib import Path
 
 import polars as pl
 from hydra.experimental.callback import Callback
-from omegaconf import DictConfig
+from omegaconf import DictConfig, open_dict, read_write
 
 from pipeline.store import atomic_write_parquet
 
@@ -41,11 +49,37 @@ def aggregate(sweep_dir: Path) -> tuple[pl.DataFrame, list[dict]]:
     return df, failures
 
 
+def _quoted_override_value(text: str) -> str:
+    """A Hydra override value that stays one string whatever the path holds (spaces, commas, =).
+
+    Hydra's quoted strings: a quote is escaped as \\', and backslashes need doubling only where
+    they precede a quote or the closing quote.
+    """
+    escaped = re.sub(r"(\\*)('|$)", lambda m: m.group(1) * 2 + ("\\'" if m.group(2) else ""), text)
+    return f"'{escaped}'"
+
+
 class SweepSummary(Callback):
+    def on_multirun_start(self, config: DictConfig, **kwargs) -> None:
+        sweep_dir = Path(str(config.hydra.sweep.dir))     # resolves ${now:...} once, here (cached)
+        if sweep_dir.is_absolute():
+            return
+        absolute = str(Path(str(config.hydra.runtime.cwd)) / sweep_dir)
+        with read_write(config.hydra), open_dict(config.hydra):
+            config.hydra.sweep.dir = absolute
+            # every job's config is re-composed from these overrides (+ its own), in whatever process
+            config.hydra.overrides.hydra.append(f"hydra.sweep.dir={_quoted_override_value(absolute)}")
+
     def on_multirun_end(self, config: DictConfig, **kwargs) -> None:
         sweep_dir = Path(config.hydra.sweep.dir)
         df, failures = aggregate(sweep_dir)
         jobs = len(list(sweep_dir.glob("*/status.json")))
+        if jobs == 0:
+            print(f"sweep {sweep_dir}: no job wrote its status.json under this folder. If the jobs ran on "
+                  f"other machines (hydra/launcher=ray_cluster), the sweep folder must be on storage every "
+                  f"node mounts at the same path: pass an absolute paths.artifacts=/shared/... ; the jobs' "
+                  f"own logs are in the launcher's output above.", file=sys.stderr)
+            sys.exit(1)
         print(f"sweep {sweep_dir}: {jobs} jobs, {jobs - len(failures)} ok, {len(failures)} failed; "
               f"summary of all jobs in {sweep_dir / 'sweep_summary.parquet'}", file=sys.stderr)
         for f in failures:

@@ -10,10 +10,28 @@ fingerprint of the code that produces stage outputs. A cached
 file is trusted only if its metadata names the same table and key; anything else (truncated,
 foreign, another key) is reported, moved aside as ``*.rejected`` (nothing is deleted) and
 recomputed.
+
+Concurrent jobs (sweep workers in separate processes, on one machine or on a shared file
+system) share the cache; each may compute and store the same key. What keeps that correct:
+- readers take no lock: a file appears under its name only whole (rename), and a reader opens it
+  once and reads the metadata and the table from that one open file, so a rename over the name
+  in between cannot pair one file's checked metadata with another file's rows;
+- a reader that finds a file damaged moves aside only *that* file (same device and inode): if
+  another job has already moved it aside, or has stored a good file in its place, nothing
+  happens. The check and the rename, and every store's rename onto a cache name, happen under
+  an exclusive ``flock`` on ``<stage>/.lock``, held for the rename only (microseconds); without
+  it a job could move aside the good file another job had just stored (and that job's publish
+  would then find no file).
+- a file that vanishes before it is opened is a miss, not a damaged file;
+- publishing (hard-linking) a cache file while another job renames its copy over the same name
+  retries the link: Linux fails a link to an inode whose last name has just gone with ENOENT.
+Two jobs storing the same key both write complete files; the last rename wins, and the stages
+are deterministic, so both hold the same table.
 """
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import hashlib
 import json
@@ -25,9 +43,14 @@ import time
 import uuid
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any, Iterator, Mapping
 
 import polars as pl
+
+try:
+    import fcntl
+except ImportError:    # not POSIX (Windows): renames are not serialised across processes there
+    fcntl = None
 
 from pipeline.schemas import META_TABLE, META_VERSION, SCHEMA_VERSION
 
@@ -84,8 +107,27 @@ def stage_key(stage: str, config: Any, inputs: tuple[str, ...] = ()) -> str:
                         "version": package_version(), "schema": SCHEMA_VERSION, "code": code_fingerprint()})
 
 
-def _atomic_write(path: Path, write, binary: bool = True) -> None:
-    """Write through a hidden temp file in the target directory, fsync, then rename over ``path``."""
+@contextlib.contextmanager
+def _renames_locked(directory: Path) -> Iterator[None]:
+    """Exclusive, cross-process: no other rename onto a cache name in ``directory`` meanwhile.
+
+    ``flock`` on ``directory/.lock`` (created once, never removed; hidden, so no glob sees it).
+    The lock goes with the file descriptor, so a killed process never leaves it held.
+    """
+    if fcntl is None:
+        yield
+        return
+    fd = os.open(directory / ".lock", os.O_RDWR | os.O_CREAT, FILE_MODE)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX)
+        yield
+    finally:
+        os.close(fd)
+
+
+def _atomic_write(path: Path, write, binary: bool = True, locked: bool = False) -> None:
+    """Write through a hidden temp file in the target directory, fsync, then rename over ``path``
+    (with ``locked``, the rename alone runs under the directory's rename lock)."""
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
@@ -94,15 +136,17 @@ def _atomic_write(path: Path, write, binary: bool = True) -> None:
             f.flush()
             os.fsync(f.fileno())
         os.chmod(tmp, FILE_MODE)
-        os.replace(tmp, path)
+        with _renames_locked(path.parent) if locked else contextlib.nullcontext():
+            os.replace(tmp, path)
     except BaseException:
         if os.path.exists(tmp):
             os.unlink(tmp)
         raise
 
 
-def atomic_write_parquet(df: pl.DataFrame, path: Path, metadata: Mapping[str, str] | None = None) -> None:
-    _atomic_write(path, lambda f: df.write_parquet(f, metadata=dict(metadata or {})))
+def atomic_write_parquet(df: pl.DataFrame, path: Path, metadata: Mapping[str, str] | None = None,
+                         *, locked: bool = False) -> None:
+    _atomic_write(path, lambda f: df.write_parquet(f, metadata=dict(metadata or {})), locked=locked)
 
 
 def atomic_write_text(text: str, path: Path) -> None:
@@ -116,14 +160,27 @@ def read_table(path: Path) -> tuple[pl.DataFrame, dict[str, str]]:
 def publish(src: Path, dst: Path) -> None:
     """Place a cached file into a run directory: hard link if possible (no copy), else copy; atomic."""
     dst.parent.mkdir(parents=True, exist_ok=True)
-    tmp = dst.parent / f".{dst.name}.{os.getpid()}.link.tmp"
-    if tmp.exists():
-        tmp.unlink()
+    # unique per call (not per process): threads of one worker process never share a temp name
+    tmp = dst.parent / f".{dst.name}.{os.getpid()}.{uuid.uuid4().hex[:8]}.link.tmp"
     try:
-        os.link(src, tmp)
-    except OSError:
-        shutil.copyfile(src, tmp)
-    os.replace(tmp, dst)
+        for attempt in range(100):
+            try:
+                os.link(src, tmp)
+                break
+            except FileNotFoundError:
+                # Linux refuses to link an inode whose last name went away between the lookup and
+                # the link (ENOENT): another job has just renamed its copy of this stage output
+                # over ``src``. The name holds that newer, equally complete file: link again.
+                if attempt == 99 or not os.path.exists(src):
+                    raise
+            except OSError:         # no hard links here (another file system, FAT, ...): copy
+                shutil.copyfile(src, tmp)
+                break
+        os.replace(tmp, dst)
+    except BaseException:
+        if os.path.lexists(tmp):
+            os.unlink(tmp)
+        raise
 
 
 @dataclass
@@ -149,32 +206,57 @@ class StageCache:
 
     def load(self, stage: str, key: str, table: str) -> tuple[pl.DataFrame, dict[str, str]] | None:
         path = self.path(stage, key)
-        if not self.enabled or not path.exists():
+        if not self.enabled:
             return None
-        problem = None
         try:
-            meta = pl.read_parquet_metadata(path)
-            if meta.get(META_TABLE) != table:
-                problem = f"it holds table {meta.get(META_TABLE)!r}, expected {table!r}"
-            elif meta.get(META_KEY) != key:
-                problem = f"its cache key is {meta.get(META_KEY)!r}, expected {key!r}"
-            elif meta.get(META_VERSION) != SCHEMA_VERSION:
-                problem = f"its schema version is {meta.get(META_VERSION)!r}, expected {SCHEMA_VERSION!r}"
-            else:
-                df = pl.read_parquet(path)
-                return df, meta
-        except Exception as exc:  # unreadable: truncated, not Parquet, ...
-            problem = f"it cannot be read ({type(exc).__name__}: {str(exc).splitlines()[0][:200]})"
-        self.reject(path, problem)
+            f = open(path, "rb")
+        except FileNotFoundError:   # not cached yet, or another job has just moved it aside
+            return None
+        with f:   # metadata and rows from this one open file, whatever is renamed over the name meanwhile
+            found = os.fstat(f.fileno())
+            problem = None
+            try:
+                meta = pl.read_parquet_metadata(f)
+                if meta.get(META_TABLE) != table:
+                    problem = f"it holds table {meta.get(META_TABLE)!r}, expected {table!r}"
+                elif meta.get(META_KEY) != key:
+                    problem = f"its cache key is {meta.get(META_KEY)!r}, expected {key!r}"
+                elif meta.get(META_VERSION) != SCHEMA_VERSION:
+                    problem = f"its schema version is {meta.get(META_VERSION)!r}, expected {SCHEMA_VERSION!r}"
+                else:
+                    f.seek(0)
+                    df = pl.read_parquet(f)
+                    return df, meta
+            except Exception as exc:  # unreadable: truncated, not Parquet, ...
+                problem = f"it cannot be read ({type(exc).__name__}: {str(exc).splitlines()[0][:200]})"
+            # still open: the inode cannot be reused by a new file before the identity check
+            self.reject(path, problem, found)
         return None
 
-    def reject(self, path: Path, problem: str) -> None:
+    def reject(self, path: Path, problem: str, found: os.stat_result | None = None) -> None:
+        """Move the file at ``path`` aside as ``*.rejected`` (never deleted).
+
+        ``found``: the ``os.stat`` of the file that was read and found bad. Only that file is
+        moved: if another job has moved it aside already, or stored a new file under the name,
+        the name is left alone (the check and the rename under the stage's rename lock, which
+        every store's rename also takes).
+        """
         aside = path.with_name(f"{path.name}.{time.strftime('%Y%m%d-%H%M%S')}.{uuid.uuid4().hex[:6]}.rejected")
-        os.replace(path, aside)
+        with _renames_locked(path.parent):
+            try:
+                current = os.stat(path)
+            except FileNotFoundError:
+                current = None
+            if current is None or (found is not None and not os.path.samestat(current, found)):
+                log.warning("cache file %s was not used: %s. Another job has already moved it aside%s; "
+                            "the stage is recomputed.", path, problem,
+                            "" if current is None else " and stored a new one")
+                return
+            os.replace(path, aside)
         log.warning("cache file %s was not used: %s. It was moved to %s and the stage is recomputed.",
                     path, problem, aside.name)
 
     def store(self, stage: str, key: str, df: pl.DataFrame, metadata: Mapping[str, str]) -> Path:
         path = self.path(stage, key)
-        atomic_write_parquet(df, path, {**metadata, META_KEY: key})
+        atomic_write_parquet(df, path, {**metadata, META_KEY: key}, locked=True)
         return path

@@ -42,9 +42,9 @@ def install(mode: str, marker: str) -> None:
     if kind in ("parquet-half", "parquet-rename"):
         original_write = store._atomic_write
 
-        def atomic_write(path, write, binary=True):
+        def atomic_write(path, write, binary=True, **options):
             if not (binary and matches(Path(path), name)):
-                return original_write(path, write, binary)
+                return original_write(path, write, binary, **options)
 
             def half_then_stall(f):
                 buffer = io.BytesIO()
@@ -65,7 +65,7 @@ def install(mode: str, marker: str) -> None:
                         stall(marker)
                     return real_replace(src, dst)
                 store.os.replace = replace_then_stall
-            return original_write(path, half_then_stall, binary)
+            return original_write(path, half_then_stall, binary, **options)
 
         store._atomic_write = atomic_write
         _ = pl
