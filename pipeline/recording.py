@@ -324,10 +324,20 @@ def _atomic_recording(rr, path: Path, experiment: str, blueprint):
 
 
 def _log_metric_series(rr, rec, times, metric_series: dict) -> None:
+    """Each metric under /metrics/<metric>/<variant>; a consistency band (``<m>_lower`` /
+    ``<m>_upper``, evaluate.consistency_metrics) goes beside its metric, /metrics/<m>/<variant>_chi2_lower,
+    as a thin line in the variant's lighter colour, so the NEES view shows each variant with its band."""
+    metrics = {m for m, _ in metric_series}
     for (metric, key), series in metric_series.items():
         steps, t, values, name, colour = series
-        entity = f"/metrics/{_path_part(metric)}/{key}"
-        rec.log(entity, rr.SeriesLines(names=name, colors=colour, widths=2.0), static=True)
+        base, _, side = str(metric).rpartition("_")
+        if side in ("lower", "upper") and base in metrics:
+            entity = f"/metrics/{_path_part(base)}/{key}_chi2_{side}"
+            style = rr.SeriesLines(names=f"{name}: χ² 95 % {side}", colors=_lighter(colour, 0.5), widths=1.0)
+        else:
+            entity = f"/metrics/{_path_part(metric)}/{key}"
+            style = rr.SeriesLines(names=name, colors=colour, widths=2.0)
+        rec.log(entity, style, static=True)
         rec.send_columns(entity, indexes=times(t, steps), columns=rr.Scalars.columns(scalars=values))
 
 

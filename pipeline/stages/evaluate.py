@@ -20,6 +20,7 @@ _COUNT = "count: sum over runs (and, in the summary, over the window's steps)"
 UNITS = {
     "acceleration_rmse_x": "m/s^2", "acceleration_rmse_y": "m/s^2", "acceleration_rmse_z": "m/s^2",
     "acceleration_rmse": "m/s^2", "position_rmse": "m", "velocity_rmse": "m/s", "nees": "1 (chi2 dof = n)",
+    "nees_lower": "1 (95 % chi2 band of the run average)", "nees_upper": "1 (95 % chi2 band of the run average)",
     "models_evaluated": "models/step", "input_level_x": "m/s^2", "input_level_y": "m/s^2",
     "input_level_z": "m/s^2", "detections": _COUNT, "detections_axis_x": _COUNT, "detections_axis_y": _COUNT,
     "detections_axis_z": _COUNT, "compute_seconds": "s", "compute_pct_of_reference": "%",
@@ -51,7 +52,8 @@ def per_step_metrics(truth: Truth, estimate: TrackEstimate) -> dict[str, np.ndar
     - ``acceleration_rmse``: 3-D (or 2-D) norm over the state's ax, ay, az, when the state has them;
     - ``acceleration_rmse_x/_y(/_z)``: per axis, from the estimator's ``acceleration`` extra against
       the truth's ``acceleration`` label, when both exist (study 001);
-    - ``nees``: over the full state (chi-square with n = state size dof for a consistent filter);
+    - ``nees``: over the full state (chi-square with n = state size dof for a consistent filter), and
+      ``nees_lower`` / ``nees_upper``: the 95 % band of its run average (``consistency_metrics``);
     - ``models_evaluated``: mean over runs of the extra of that name;
     - ``input_level_x/_y/_z``: mean over runs of ``extras["input_level"]`` (R, K, 3) [m/s^2];
     - ``detections``: SUM over runs of ``extras["maneuver_detected"]`` (R, K) at each step (a count);
@@ -80,7 +82,8 @@ def per_step_metrics(truth: Truth, estimate: TrackEstimate) -> dict[str, np.ndar
         P = np.where(started[..., None, None], estimate.covariance, np.eye(err.shape[-1]))
         e = np.where(started[..., None], err, 0.0)
         nees = np.einsum("rki,rki->rk", e, np.linalg.solve(P, e[..., None])[..., 0])
-        out["nees"] = np.nanmean(np.where(started, nees, np.nan), axis=0)
+        # the run average with its 95 % chi-square band (n dof per valid run)
+        out.update(consistency_metrics("nees", np.where(started, nees, np.nan), err.shape[-1]))
         if "models_evaluated" in extras:
             evaluated = extras["models_evaluated"].astype(float)
             out["models_evaluated"] = np.where(started.any(axis=0), evaluated.mean(axis=0), np.nan)
