@@ -24,7 +24,7 @@ from pipeline import schemas
 from pipeline.data import Detections, Truth
 from pipeline.errors import ConfigError
 from pipeline.seeding import run_generators
-from pipeline.stages.evaluate import _quiet_nanmean
+from pipeline.stages.evaluate import _quiet_nanmean, consistency_metrics
 
 
 class BiasRegistrationStudy:
@@ -171,7 +171,8 @@ def bias_study_metrics(truth: Truth, result: BiasRegistrationResult, true_bias: 
                     j = 4 * s + c
                     # before the first report the estimate is the prior mean 0
                     out[f"bias_rmse_{name}_s{s + 1}"] = on_grid(rmse[:, j], prior=abs(true_bias[j]))
-            out["bias_nees"] = on_grid(np.mean(_nees(err, result.bias_covariance), axis=0))
+            band = consistency_metrics("bias_nees", _nees(err, result.bias_covariance), err.shape[-1])
+            out.update({name: on_grid(values) for name, values in band.items()})          # 95 % band, 4S dof
             for s in range(S):
                 block = slice(4 * s, 4 * s + 4)
                 out[f"bias_nees_s{s + 1}"] = on_grid(
@@ -209,6 +210,8 @@ def bias_metric_units(names: Sequence[str]) -> dict[str, str]:
         if name.startswith("bias_rmse_"):
             component = name[len("bias_rmse_"):].rsplit("_s", 1)[0]
             units[name] = BIAS_UNITS[BIAS_NAMES.index(component)]
+        elif name in ("bias_nees_lower", "bias_nees_upper"):
+            units[name] = "1 (95 % chi2 band of the run average)"
         elif name.startswith("bias_nees"):
             units[name] = "1 (chi2 dof = 4 per radar)"
         elif name.startswith("track_nees"):

@@ -27,10 +27,11 @@ from pipeline import schemas
 from pipeline.data import Detections, Truth
 from pipeline.errors import ConfigError
 from pipeline.seeding import run_generators
-from pipeline.stages.evaluate import _quiet_nanmean
+from pipeline.stages.evaluate import _quiet_nanmean, consistency_metrics
 
 UNITS = {"position_rmse": "m", "position_median_error": "m", "buoy_position_rmse": "m", "buoy_position_median_error": "m",
-         "nees_position": "1 (chi2 dof = 2)", "nees_position_median": "1 (chi2 dof = 2: median 1.39)", "ess": "particles", "mode_probability_cv": "probability",
+         "nees_position": "1 (chi2 dof = 2)", "nees_position_lower": "1 (95 % chi2 band of the run average)",
+         "nees_position_upper": "1 (95 % chi2 band of the run average)", "nees_position_median": "1 (chi2 dof = 2: median 1.39)", "ess": "particles", "mode_probability_cv": "probability",
          "mode_probability_ccw": "probability", "mode_probability_cw": "probability",
          "track_loss_rate": "fraction of runs", "final_position_rmse": "m", "peak_median_error": "m"}
 MODE_NAMES = ("cv", "ccw", "cw")
@@ -119,7 +120,8 @@ class SonobuoyStudy:
             P = np.where(ok[..., None, None], P, np.eye(2))
             e = np.where(ok[..., None], e, 0.0)
             nees = np.einsum("rki,rki->rk", e, np.linalg.solve(P, e[..., None])[..., 0])
-            out["nees_position"] = np.nanmean(np.where(ok, nees, np.nan), axis=0)
+            # the run average with its 95 % chi-square band (2 dof per valid run)
+            out.update(consistency_metrics("nees_position", np.where(ok, nees, np.nan), 2))
             # the mean is what a consistency check reads, but one collapsed cloud (covariance of
             # centimetres, error of metres) dominates it: the median shows the typical run
             out["nees_position_median"] = np.nanmedian(np.where(ok, nees, np.nan), axis=0)
