@@ -21,6 +21,8 @@ UNITS = {
     "acceleration_rmse_x": "m/s^2", "acceleration_rmse_y": "m/s^2", "acceleration_rmse_z": "m/s^2",
     "acceleration_rmse": "m/s^2", "position_rmse": "m", "velocity_rmse": "m/s", "nees": "1 (chi2 dof = n)",
     "nees_lower": "1 (95 % chi2 band of the run average)", "nees_upper": "1 (95 % chi2 band of the run average)",
+    "nis": "1 (chi2 dof = measurement size)", "nis_lower": "1 (95 % chi2 band of the run average)",
+    "nis_upper": "1 (95 % chi2 band of the run average)",
     "models_evaluated": "models/step", "input_level_x": "m/s^2", "input_level_y": "m/s^2",
     "input_level_z": "m/s^2", "detections": _COUNT, "detections_axis_x": _COUNT, "detections_axis_y": _COUNT,
     "detections_axis_z": _COUNT, "compute_seconds": "s", "compute_pct_of_reference": "%",
@@ -54,6 +56,8 @@ def per_step_metrics(truth: Truth, estimate: TrackEstimate) -> dict[str, np.ndar
       the truth's ``acceleration`` label, when both exist (study 001);
     - ``nees``: over the full state (chi-square with n = state size dof for a consistent filter), and
       ``nees_lower`` / ``nees_upper``: the 95 % band of its run average (``consistency_metrics``);
+    - ``nis`` / ``nis_lower`` / ``nis_upper``: the run-averaged normalised innovation squared with
+      its band, from the estimator's ``nis`` / ``nis_dof`` extras (``nis_metrics``);
     - ``models_evaluated``: mean over runs of the extra of that name;
     - ``input_level_x/_y/_z``: mean over runs of ``extras["input_level"]`` (R, K, 3) [m/s^2];
     - ``detections``: SUM over runs of ``extras["maneuver_detected"]`` (R, K) at each step (a count);
@@ -84,6 +88,7 @@ def per_step_metrics(truth: Truth, estimate: TrackEstimate) -> dict[str, np.ndar
         nees = np.einsum("rki,rki->rk", e, np.linalg.solve(P, e[..., None])[..., 0])
         # the run average with its 95 % chi-square band (n dof per valid run)
         out.update(consistency_metrics("nees", np.where(started, nees, np.nan), err.shape[-1]))
+        out.update(nis_metrics(extras))
         if "models_evaluated" in extras:
             evaluated = extras["models_evaluated"].astype(float)
             out["models_evaluated"] = np.where(started.any(axis=0), evaluated.mean(axis=0), np.nan)
@@ -130,6 +135,27 @@ def consistency_metrics(name: str, values: np.ndarray, dof: np.ndarray | int,
         lower = np.where(counts > 0, chi2.ppf(tail, np.maximum(total_dof, 1e-12)) / np.maximum(counts, 1), np.nan)
         upper = np.where(counts > 0, chi2.ppf(1.0 - tail, np.maximum(total_dof, 1e-12)) / np.maximum(counts, 1), np.nan)
     return {name: mean, f"{name}_lower": lower, f"{name}_upper": upper}
+
+
+def nis_metrics(extras: Mapping[str, np.ndarray], prefix: str = "nis") -> dict[str, np.ndarray]:
+    """``{prefix}``, ``{prefix}_lower``, ``{prefix}_upper`` from an estimator's extras.
+
+    The filter convention: ``extras["nis"]`` (R, K) is each run's normalised innovation squared
+    nu' S^-1 nu at each scan, from the innovation the filter itself used (an IMM's combined
+    moment-matched prediction, a particle filter's predicted cloud), NaN where the run had no
+    measurement or had not started; ``extras["nis_dof"]`` (R, K) the measurement dimension of that
+    innovation (chi-square dof for a consistent filter). Extras named ``{prefix}`` /
+    ``{prefix}_dof`` (e.g. ``nis_s1`` for one radar's local tracks) work the same way. Empty when
+    the estimator exports no NIS.
+    """
+    if prefix not in extras:
+        return {}
+    values = np.asarray(extras[prefix], dtype=float)
+    dof = np.asarray(extras.get(f"{prefix}_dof", np.nan), dtype=float)
+    if not np.all(np.isfinite(np.broadcast_to(dof, values.shape)[np.isfinite(values)])):
+        raise ValueError(f"extras[{prefix!r}]: a NIS value without its dof: export extras[{prefix + '_dof'!r}] "
+                         f"(R, K) beside it")
+    return consistency_metrics(prefix, values, dof)
 
 
 def _count(flags: np.ndarray) -> np.ndarray:
