@@ -60,6 +60,14 @@ from filters.models import singer_input_gain, singer_process_noise, singer_trans
 _KIN_MAJOR = [a * 3 + kin for kin in range(3) for a in range(3)]
 
 
+def _nis_extras(nis: np.ndarray, dof: int) -> dict[str, np.ndarray]:
+    """The filter's own innovation at each scan from 2 on (the update's residual, eqs 8-11, with its covariance,
+    before any compensation): NaN at the two-point start (scans 0, 1)."""
+    nis = np.array(nis, dtype=float)
+    nis[:, :2] = np.nan
+    return {"nis": nis, "nis_dof": np.where(np.isfinite(nis), float(dof), 0.0)}
+
+
 class _MIEBase:
     name: str
     TESTS: tuple[str, ...] = ()
@@ -244,7 +252,7 @@ class LOSMIE(_MIEBase):
             self._output(out_x, out_P, level_out, k, x, P, T, u)
 
         extras = {"input_level": level_out, "maneuver_detected": detected_out, "test_statistic": stat_out,
-                  "onset_step": onset_out}
+                  "onset_step": onset_out, **_nis_extras(np.sum(nu_hist**2 / s_hist, axis=-1), 3)}
         if self.test == "per_axis":
             extras["maneuver_detected_axis"] = axis_out
         out_x += self._radar_offset(measurements)
@@ -552,7 +560,7 @@ class InertialMIE(_MIEBase):
                 sens_v_hist[:, k] = sens[:, vel]
             self._output(out_x, out_P, level_out, k, x, P, u)
         extras = {"input_level": level_out, "maneuver_detected": detected_out, "test_statistic": stat_out,
-                  "onset_step": onset_out}
+                  "onset_step": onset_out, **_nis_extras(einsum("rki,rkij,rkj->rk", nu_hist, sinv_hist, nu_hist), 3)}
         out_x += self._radar_offset(measurements)
         return TrackEstimate(measurements.time, out_x, out_P, extras, time.perf_counter() - started)
 

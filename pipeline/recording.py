@@ -65,7 +65,7 @@ ELLIPSE_POINTS = 48
 ELLIPSE_SIGMA = 2.0
 SPATIAL_METRICS = ("acceleration_rmse_x", "acceleration_rmse_y", "position_rmse")
 _UNITS = {"acceleration_rmse_x": "m/s²", "acceleration_rmse_y": "m/s²", "position_rmse": "m",
-          "velocity_rmse": "m/s", "nees": "-", "models_evaluated": "models/step",
+          "velocity_rmse": "m/s", "nees": "-", "nis": "-", "models_evaluated": "models/step",
           "acceleration_rmse": "m/s²", "detections": "count"}
 
 # One colour per variant, in display order, used in every view (tracks, estimates, metric lines).
@@ -367,6 +367,20 @@ def _path_part(name: str) -> str:
     return re.sub(r"[^A-Za-z0-9_.-]+", "_", str(name))
 
 
+# how far from the limit: consistency (NEES, NIS with their chi-square bands) and RMSE over the PCRLB
+LIMIT_VIEWS = (("nees", "NEES (line: run average; thin: its χ² 95 % band)"),
+               ("nis", "NIS (line: run average; thin: its χ² 95 % band)"),
+               ("position_rmse_over_bound", "position RMSE / sqrt(PCRLB) (1 = at the bound)"),
+               ("position_bound", "sqrt(PCRLB) of the position [m]"))
+
+
+def _limit_views(rrb, present: set, whole_run) -> list:
+    """One view per limit metric the run has, each variant's line beside its band."""
+    legend = rrb.PlotLegend(corner="RightTop")
+    return [rrb.TimeSeriesView(origin=f"/metrics/{metric}", name=name, axis_x=whole_run, plot_legend=legend)
+            for metric, name in LIMIT_VIEWS if metric in present]
+
+
 def _metric_series(metrics, experiment: str, variant_keys: list[str], display: Mapping[str, str],
                    colours: dict) -> dict:
     """(metric, variant_key) -> (steps, time, values, display name, colour), finite values only, in
@@ -537,6 +551,7 @@ def _blueprint(rrb, truth: Truth, truth_xy: list[int], record_runs: list[int], v
                 if richest is None and len(parts) > 1:
                     richest = len(tabs)   # open on the first variant with groups: probabilities + groups + events
                 tabs.append(rrb.Horizontal(*parts, column_shares=[3.0, 1.6, 1.8][: len(parts)], name=display[key]))
+    tabs += _limit_views(rrb, {m for m, _ in metric_series}, whole_run)
     if has_config:
         tabs.append(rrb.TextDocumentView(origin="/config", name="Config"))
     if tabs:
@@ -975,8 +990,7 @@ def _blueprint_3d(rrb, truth: Truth, t_xyz: list[int], origin: np.ndarray, recor
                                              columns=log_columns))
             if parts:
                 tabs.append(rrb.Vertical(*parts, name=display[key]))
-    if "nees" in present:
-        tabs.append(rrb.TimeSeriesView(origin="/metrics/nees", name="NEES", axis_x=whole_run, plot_legend=legend))
+    tabs += _limit_views(rrb, present, whole_run)
     overview = [f"/world/run{r}/truth" for r in record_runs] + ["/world/radar"] + \
         [f"/world/run{r}/{k}/track" for r in record_runs for k in variant_keys]
     pts = np.concatenate([truth.state[record_runs][..., t_xyz].reshape(-1, 3), origin[None]])

@@ -126,7 +126,7 @@ def test_compact_and_drop_keep_estimates_with_their_models():
     idx = np.array([[3, -1, 5, 7], [-1, -1, 2, -1]])
     x = np.arange(R * A * 1, dtype=float).reshape(R, A, 1)
     s = ModeSet(idx, x, np.ones((R, A, 1, 1)), np.where(idx >= 0, 0.0, -np.inf), np.zeros((R, A)),
-                np.where(idx >= 0, 0.0, -np.inf))
+                np.where(idx >= 0, 0.0, -np.inf), x, np.ones((R, A, 1, 1)))
     c = compact(s)
     np.testing.assert_array_equal(c.model_index, [[3, 5, 7], [2, -1, -1]])
     np.testing.assert_array_equal(c.x[..., 0], [[0, 2, 3], [6, 4, 5]])
@@ -176,13 +176,13 @@ def test_termination_readings_on_a_hand_worked_union(models13):
     log_pred = np.full((1, A), np.log(1 / A))
     log_lik = np.where(union == 9, 0.0, np.log(1e-3))
     s = ModeSet(union, np.zeros((1, A, 4)), np.broadcast_to(np.eye(4), (1, A, 4, 4)).copy(), log_pred, log_lik,
-                log_pred + log_lik)
+                log_pred + log_lik, np.zeros((1, A, 4)), np.broadcast_to(np.eye(4), (1, A, 4, 4)).copy())
     start = GroupState(old=np.array([0]), new=np.array([1]), log_lr=np.zeros(1))
     for ratio, survivor in (("printed", 0), ("new_old", 1), ("old_new", 1)):
         kept, groups = VSIMM(models13, ratio=ratio)._terminate(s, start, np.array([True]))
         assert groups.old[0] == survivor and groups.new[0] == -1, ratio
         assert set(kept.model_index[0][kept.valid[0]]) == set(models13.groups[survivor]), ratio
 
-    even = ModeSet(union, s.x, s.P, log_pred, np.zeros((1, A)), log_pred)
+    even = ModeSet(union, s.x, s.P, log_pred, np.zeros((1, A)), log_pred, s.x, s.P)
     kept, groups = VSIMM(models13)._terminate(even, start, np.array([True]))
     assert groups.new[0] == 1 and kept.valid.sum() == A     # t^L = 1 is not above t2^L = 1: keep the union
