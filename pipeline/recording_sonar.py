@@ -28,6 +28,9 @@ Layout of the entity tree (``r`` = a recorded Monte Carlo run, ``v`` = a variant
     /sensor/active                        the same as a scalar step series, 1 = active, 0 = passive
     /sensor/events                        TextLog line at each switch
     /metrics/{metric}/{v}                 Monte Carlo averages per step (position_rmse[_x, _y], ...)
+    /metrics/{nees,nis}/{v}_chi2_{lower,upper}   the 95 % chi-square band of the run-averaged NEES /
+                                          NIS (the metrics' nees_lower / _upper, nis_lower / _upper),
+                                          thin lines in the variant's lighter colour beside its line
     /config                               markdown: description, sonar schedule and noise, config yaml
     /world/frames/north_up, /world/frames/target_run{r}   frames the 2-D views look from (y = north
                                           up; the latter centred on run r's true target position)
@@ -62,7 +65,12 @@ ACTIVE, PASSIVE = "active", "passive"
 MODE_LABELS = {ACTIVE: "active (bearing + range)", PASSIVE: "passive (bearing only)"}
 ELLIPSE_STRIDE = 10               # covariance ellipses every 10th step (+ at each mode switch)
 BEARING_LINE_SCALE = 1.2          # a passive bearing line is 1.2 x the true range long
-TIME_SERIES_METRICS = ("position_rmse", "position_rmse_x", "position_rmse_y", "velocity_rmse", "nees")
+TIME_SERIES_METRICS = ("position_rmse", "position_rmse_x", "position_rmse_y", "velocity_rmse", "nees", "nis")
+# Titles of the consistency views: each variant's run average with its 95 % band (thin, lighter)
+_VIEW_TITLES = {
+    "nees": "NEES, run average (χ² 6 dof; NaN while KF + MGEKF runs its 4-state KF); thin: 95 % band",
+    "nis": "NIS, run average (χ² 2 dof active, 1 dof passive); thin: 95 % band",
+}
 _OWNSHIP_COLOUR = (255, 215, 0)
 _BEARING_COLOUR = (150, 150, 150, 150)
 _FIX_COLOUR = (255, 110, 220)
@@ -312,7 +320,8 @@ def _sonar_blueprint(rrb, record_runs: list[int], variant_keys: list[str], displ
                      metric_series: dict, ownship: np.ndarray, target: np.ndarray, zoom: float):
     """Top: per variant, a target-centred view over a whole-scene view (own-ship, target, bearings,
     fixes, that variant). Then the sonar mode as a state timeline, the recorded run's X and Y errors
-    and the Monte Carlo position RMSE; bottom tabs: X / Y RMSE, velocity RMSE, NEES, the mode as a
+    and the Monte Carlo position RMSE; bottom tabs: X / Y RMSE, velocity RMSE, NEES and NIS (each
+    variant with its 95 % chi-square band as thin lighter lines), the mode as a
     scalar with the switch log, the config."""
     r0 = record_runs[0] if record_runs else None
     whole_run = rrb.TimeAxis(view_range=rrb.TimeRange(start=rrb.TimeRangeBoundary.infinite(),
@@ -367,8 +376,9 @@ def _sonar_blueprint(rrb, record_runs: list[int], variant_keys: list[str], displ
     tabs = []
     for m in TIME_SERIES_METRICS[1:]:
         if m in present:
+            title = _VIEW_TITLES.get(m, f"{m} [{_UNITS_SONAR.get(m, '')}]")
             tabs.append(rrb.TimeSeriesView(origin=f"/metrics/{_path_part(m)}", axis_x=whole_run, plot_legend=legend,
-                                           name=f"{m} [{_UNITS_SONAR.get(m, '')}] (all runs)"))
+                                           name=f"{title} (all runs)"))
     be = rrb.encodings
     log_columns = rrb.TextLogColumns(
         timeline_columns=[be.TimelineColumn("time"), be.TimelineColumn("step", visible=False)],
