@@ -188,6 +188,13 @@ class BiasRegistrationResult:
     are kept. track_state (R, K, Tsel, 4) / track_covariance: the reporting radar's biased local
     track after report k (NaN before it has one); compensated_state / compensated_covariance:
     the same track with the radar's bias estimate removed (eqs 38, 41).
+
+    nis (R, K): the normalised innovation squared nu' S^-1 nu of the reporting radar's local
+    update at report k (converted measurement, S = H P H' + R^m, eq 19), SUMMED over all its
+    tracked targets (not only the kept ones), so that it is chi-square with nis_dof (R, K) = 2 x the
+    number of targets summed degrees of freedom for a consistent local filter (the targets'
+    innovations are independent); NaN with dof 0 where the radar had no track to update (a
+    two-point start's first two reports). None for a result read from a table without them.
     """
 
     time: np.ndarray
@@ -200,14 +207,18 @@ class BiasRegistrationResult:
     compensated_state: np.ndarray
     compensated_covariance: np.ndarray
     compute_seconds: float = float("nan")
+    nis: np.ndarray | None = None
+    nis_dof: np.ndarray | None = None
 
     @classmethod
     def concat_runs(cls, parts: Sequence["BiasRegistrationResult"]) -> "BiasRegistrationResult":
         """Chunks of runs (in run order) as one result; compute time is the sum of the chunks'."""
         first = parts[0]
-        stacked = {name: np.concatenate([getattr(p, name) for p in parts])
-                   for name in ("bias", "bias_covariance", "track_state", "track_covariance", "compensated_state",
-                                "compensated_covariance")}
+        names = ["bias", "bias_covariance", "track_state", "track_covariance", "compensated_state",
+                 "compensated_covariance"]
+        if all(p.nis is not None and p.nis_dof is not None for p in parts):
+            names += ["nis", "nis_dof"]
+        stacked = {name: np.concatenate([getattr(p, name) for p in parts]) for name in names}
         return cls(first.time, first.sensor, targets=first.targets, compute_seconds=float(sum(p.compute_seconds for p in parts)),
                    **stacked)
 
@@ -219,11 +230,13 @@ class BiasRegistrationResult:
 @dataclass(frozen=True)
 class LocalTracks:
     """One radar's biased local tracks: state (..., T, 4), covariance (..., T, 4, 4),
-    bias matrix G (..., T, 4, 4) with X^b = X + G beta (eq 16)."""
+    bias matrix G (..., T, 4, 4) with X^b = X + G beta (eq 16); nis (..., T): the normalised
+    innovation squared of the update that gave these tracks (None for predicted or started ones)."""
 
     state: np.ndarray
     covariance: np.ndarray
     bias_matrix: np.ndarray
+    nis: np.ndarray | None = None
 
 
 def _cv_move(state: np.ndarray, covariance: np.ndarray, bias_matrix: np.ndarray | None, dt: float,
@@ -253,18 +266,22 @@ def update_local(predicted: LocalTracks, z_converted: np.ndarray, noise: np.ndar
     """Eqs 16-21 with the converted measurement z^m, its covariance R^m and B C.
 
     G' = (I - K H) Phi G + K B C (eq 20 corrected), P' = (I - K H) P (eq 21, as P - K S K').
+    The updated tracks carry each target's NIS nu' S^-1 nu of this update (chi-square, 2 dof, for
+    a consistent filter).
     """
     P = predicted.covariance
     PHt = P[..., :, :2]
     S = P[..., :2, :2] + noise                                       # eq 19
-    gain = _times_2(PHt, inverse_2x2(S))                            # eq 18
+    S_inv = inverse_2x2(S)
+    gain = _times_2(PHt, S_inv)                                     # eq 18
     innovation = z_converted - predicted.state[..., :2]
+    nis = np.sum(innovation * _times_2(S_inv, innovation[..., None])[..., 0], axis=-1)
     state = predicted.state + gain[..., 0] * innovation[..., 0:1] + gain[..., 1] * innovation[..., 1:2]
     covariance = P - _times_2(gain, np.swapaxes(PHt, -1, -2))
     covariance = 0.5 * (covariance + np.swapaxes(covariance, -1, -2))
     G = predicted.bias_matrix
     bias_matrix = G + _times_2(gain, bias_columns - G[..., :2, :])   # eq 20: (I - K H) Phi G + K B C
-    return LocalTracks(state, covariance, bias_matrix)
+    return LocalTracks(state, covariance, bias_matrix, nis)
 
 
 def two_point_start(z0: np.ndarray, z1: np.ndarray, noise0: np.ndarray, noise1: np.ndarray,
@@ -277,6 +294,15 @@ def two_point_start(z0: np.ndarray, z1: np.ndarray, noise0: np.ndarray, noise1: 
     P[..., 2:, 2:] = (noise1 + noise0) / dt**2
     G = np.concatenate([bias_columns1, (bias_columns1 - bias_columns0) / dt], axis=-2)
     return LocalTracks(state, P, G)
+
+
+def nis_over_targets(nis: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per-target NIS (..., T) -> their sum over the targets (...) and its chi-square dof (...):
+    2 per target with a finite NIS (independent 2-D innovations); NaN with dof 0 where none is."""
+    counted = np.isfinite(nis)
+    count = counted.sum(axis=-1)
+    total = np.where(counted, nis, 0.0).sum(axis=-1)
+    return np.where(count > 0, total, np.nan), 2.0 * count
 
 
 def compensate(tracks: LocalTracks, bias: np.ndarray, bias_covariance: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -448,6 +474,8 @@ class LocalTracking:
         out_P = np.full((R, K, Tsel, 4, 4), np.nan)
         out_xc = np.full((R, K, Tsel, 4), np.nan)
         out_Pc = np.full((R, K, Tsel, 4, 4), np.nan)
+        out_nis = np.full((R, K), np.nan)
+        out_nis_dof = np.zeros((R, K))
         for k in range(K):
             i, t = int(reports.sensor[k]), float(reports.time[k])
             position = reports.sensor_position[i]
@@ -471,6 +499,8 @@ class LocalTracking:
             if predicted is not None:
                 tracks[i] = update_local(predicted, z_converted, noise, BC)
                 last_time[i] = t
+                # all T targets, not only the kept ones: the radar's whole local filter, chi2(2T)
+                out_nis[:, k], out_nis_dof[:, k] = nis_over_targets(tracks[i].nis)
             elif first_report[i] is None:
                 first_report[i] = (z_converted, noise, BC, t)
             else:                                                       # eqs 8-11 from the first two reports
@@ -488,7 +518,7 @@ class LocalTracking:
                     out_xc[:, k], out_Pc[:, k] = chosen.state, chosen.covariance
         return BiasRegistrationResult(
             reports.time.copy(), reports.sensor.copy(), out_bias, out_bias_cov, selected, out_x, out_P, out_xc,
-            out_Pc, _time.perf_counter() - started)
+            out_Pc, _time.perf_counter() - started, out_nis, out_nis_dof)
 
 
 class PseudoBiasRegistration(LocalTracking):

@@ -23,6 +23,9 @@ number 1..S as in the metric names ``..._s<n>``, ``m`` = target number 1..T)::
     /bias/{v}/run{r}/radar{n}/{component}/true    the true bias (constant)
     /metrics/{metric}/{v}                         Monte Carlo averages per truth step
     /metrics/{nees metric}/chi2/{mean,lower,upper}  expected NEES and the 95 % band of an n_runs mean
+    /metrics/nis_s{n}/{v}, .../{v}_chi2_{lower,upper}  radar n's local-track NIS (mean over its targets
+                                                  and the runs) and its 95 % band (the metrics'
+                                                  nis_s{n}_lower / _upper, thin and lighter)
     /config                                       markdown: description, radars, true biases, config yaml
     /world/frames/north_up, /world/frames/target{m}_run{r}   frames the 2-D views look from (y up;
                                                   the latter centred on target m's true position)
@@ -410,7 +413,8 @@ def _bias_blueprint(rrb, truth: Truth, truth_xy: list[int], positions: np.ndarra
     estimates biases (else per variant), zoomed views centred on each kept target (biased and
     compensated tracks with their ellipses). Bottom left: tabs per radar with a grid of the bias
     estimates, one row per variant and one column per component, on one y range per column. Bottom
-    right: tabs with the bias RMSE (one line per variant), NEES, track RMSE and the config."""
+    right: tabs with the bias RMSE (one line per variant), NEES, the local tracks' NIS per radar
+    (each variant's line with its 95 % band as thin lighter lines), track RMSE and the config."""
     r0 = record_runs[0] if record_runs else None
     variant_keys = list(estimates)
     S = positions.shape[0]
@@ -486,6 +490,13 @@ def _bias_blueprint(rrb, truth: Truth, truth_xy: list[int], positions: np.ndarra
             for m in ["bias_nees"] + [f"bias_nees_s{n + 1}" for n in range(S)] if m in present]
     if nees:
         tabs.append(rrb.Grid(*nees, name="bias NEES"))
+    # the local tracks are the same in every variant, so the variants' NIS lines coincide
+    nis = [rrb.TimeSeriesView(origin=f"/metrics/nis_s{n + 1}", axis_x=whole_run, plot_legend=legend,
+                              name=f"nis_s{n + 1}: radar {n + 1} ({names[n]}) local tracks (χ² 2 dof per target, "
+                                   f"mean of targets and runs; band 95 %)")
+           for n in range(S) if f"nis_s{n + 1}" in present]
+    if nis:
+        tabs.append(rrb.Grid(*nis, name="local-track NIS"))
     track = _track_metric_views(rrb, metric_series, variant_keys, bias_keys, whole_run)
     if track:
         tabs.append(rrb.Grid(*track, grid_columns=4, name="tracks: biased (light) vs compensated"))

@@ -18,7 +18,7 @@ from filters.base import TrackEstimate
 from filters.bias import BIAS_NAMES, STATE_NAMES as BIAS_STUDY_STATE, BiasRegistrationResult
 from pipeline.data import Detections, Truth
 
-SCHEMA_VERSION = "2"          # 2: estimates tables carry the fault column
+SCHEMA_VERSION = "3"          # 2: estimates tables carry the fault column; 3: and the filters' NIS
 META_TABLE = "mtt.table"
 META_VERSION = "mtt.schema_version"
 META_UNITS = "mtt.units"
@@ -193,11 +193,19 @@ def bias_estimates_to_frame(res: BiasRegistrationResult) -> tuple[pl.DataFrame, 
         column = _array_column(name, per_object(bias_part, track_part, shape), rows)
         keep = is_bias if track_part is None else ~is_bias
         cols.append(pl.select(pl.when(pl.Series(keep)).then(column)).to_series().alias(name))
+    units = {"time": "s", "x": "m, m/s (x, y, vx, vy)", "P": "row-major 4 x 4", "bias": "per radar: m, rad, 1, 1",
+             "bias_P": f"row-major {n} x {n}", "compute_seconds": str(res.compute_seconds)}
+    if res.nis is not None and res.nis_dof is not None:
+        # the reporting radar's local-track NIS, one value per report: on the bias rows
+        for name, values in (("nis", res.nis), ("nis_dof", res.nis_dof)):
+            full = np.full((R, K, Tsel + 1), np.nan)
+            full[:, :, 0] = values
+            cols.append(pl.select(pl.when(pl.Series(is_bias)).then(pl.Series(name, full.reshape(-1))))
+                        .to_series().alias(name))
+        units.update(nis="1 (sum over the reporting radar's tracked targets of nu' S^-1 nu)",
+                     nis_dof="chi2 dof of nis (2 per target, summed)")
     meta = table_metadata("bias_estimates", {"state": list(BIAS_STUDY_STATE), "bias": list(BIAS_NAMES),
-                                             "targets": res.targets.tolist()},
-                          {"time": "s", "x": "m, m/s (x, y, vx, vy)", "P": "row-major 4 x 4",
-                           "bias": "per radar: m, rad, 1, 1", "bias_P": f"row-major {n} x {n}",
-                           "compute_seconds": str(res.compute_seconds)})
+                                             "targets": res.targets.tolist()}, units)
     return pl.DataFrame(cols), meta
 
 
@@ -223,7 +231,8 @@ def bias_estimates_from_frame(df: pl.DataFrame, meta: Mapping[str, str]) -> Bias
         first["time"].to_numpy(), first["sensor"].to_numpy().astype(int), arr(bias_rows, "bias", (R, K, n)),
         arr(bias_rows, "bias_P", (R, K, n, n)), targets, arr(track_rows, "x", (R, K, Tsel, 4)),
         arr(track_rows, "P", (R, K, Tsel, 4, 4)), arr(track_rows, "x_compensated", (R, K, Tsel, 4)),
-        arr(track_rows, "P_compensated", (R, K, Tsel, 4, 4)), seconds)
+        arr(track_rows, "P_compensated", (R, K, Tsel, 4, 4)), seconds,
+        *((arr(bias_rows, "nis", (R, K)), arr(bias_rows, "nis_dof", (R, K))) if "nis" in df.columns else ()))
 
 
 def _extent(df: pl.DataFrame, object_column: str) -> tuple[int, int, int]:

@@ -10,7 +10,10 @@ Metrics live on the truth's time grid (step k is truth.time[k]); a report at tim
 step at t. Names: ``bias_rmse_<component>_s<n>`` (radar n, 1-based), ``bias_nees`` (all 4S
 components), ``bias_nees_s<n>``; for every kept target m and radar n, at that radar's reports:
 ``position_rmse_s<n>_t<m>`` / ``velocity_rmse_...`` of the biased local track, the same with
-``_compensated``, and ``track_nees_s<n>_t<m>_compensated`` (4 dof).
+``_compensated``, and ``track_nees_s<n>_t<m>_compensated`` (4 dof); for every radar n, at its
+reports: ``nis_s<n>`` the normalised innovation squared of its local updates, averaged over all
+its tracked targets and the runs (2 dof per target: expected 2), with ``nis_s<n>_lower`` /
+``nis_s<n>_upper`` the 95 % chi-square band of that average (``target_mean_nis``).
 """
 
 from __future__ import annotations
@@ -192,7 +195,32 @@ def bias_study_metrics(truth: Truth, result: BiasRegistrationResult, true_bias: 
                 e = result.compensated_state[:, mine, col] - true_state
                 out[f"track_nees_{label}_compensated"] = on_grid(
                     np.nanmean(_nees(e, result.compensated_covariance[:, mine, col]), axis=0), mine)
+        if result.nis is not None and result.nis_dof is not None:
+            for s in range(S):
+                mine = np.nonzero(result.sensor == s)[0]
+                if mine.size:
+                    band = target_mean_nis(f"nis_s{s + 1}", result.nis[:, mine], result.nis_dof[:, mine])
+                    out.update({name: on_grid(values, mine) for name, values in band.items()})
     return out
+
+
+def target_mean_nis(name: str, nis_sum: np.ndarray, dof: np.ndarray) -> dict[str, np.ndarray]:
+    """``{name}``, ``{name}_lower``, ``{name}_upper`` (K,): the NIS averaged over the targets and
+    the runs, with its 95 % chi-square band, from each run's NIS summed over its targets ``nis_sum``
+    (R, K) (NaN: none) and the sum's dof (R, K) (2 per target).
+
+    Over the N runs with a value, the sums add up to a chi-square of D = their summed dof, so the
+    average per target, sum / (D / 2), has expected value 2 and the band chi2.ppf(., D) / (D / 2):
+    consistency_metrics' band of the run-averaged sum (chi2.ppf(., D) / N) divided by D / (2 N), the
+    targets per run. With the same targets in every run this is the run average of each run's
+    per-target mean.
+    """
+    band = consistency_metrics(name, nis_sum, dof)
+    valid = np.isfinite(nis_sum)
+    runs = valid.sum(axis=0)
+    targets_per_run = np.where(valid, dof, 0.0).sum(axis=0) / np.maximum(2.0 * runs, 1.0)
+    ok = (runs > 0) & (targets_per_run > 0)
+    return {key: np.where(ok, values / np.where(ok, targets_per_run, 1.0), np.nan) for key, values in band.items()}
 
 
 def _nees(err: np.ndarray, covariance: np.ndarray) -> np.ndarray:
@@ -216,6 +244,10 @@ def bias_metric_units(names: Sequence[str]) -> dict[str, str]:
             units[name] = "1 (chi2 dof = 4 per radar)"
         elif name.startswith("track_nees"):
             units[name] = "1 (chi2 dof = 4)"
+        elif name.startswith("nis_s") and name.endswith(("_lower", "_upper")):
+            units[name] = "1 (95 % chi2 band of the run and target average)"
+        elif name.startswith("nis_s"):
+            units[name] = "1 (per-target mean of chi2 dof = 2; expected 2)"
         elif name.startswith("position_rmse"):
             units[name] = "m"
         elif name.startswith("velocity_rmse"):
