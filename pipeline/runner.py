@@ -385,7 +385,8 @@ def _default_study(cfg: DictConfig) -> SingleTargetStudy:
     models = cfg.get("models")
     return SingleTargetStudy(
         model_names=list(models.accelerations.keys()) if models and "accelerations" in models else None,
-        group_names=list(models.groups.keys()) if models and "groups" in models else None)
+        group_names=list(models.groups.keys()) if models and "groups" in models else None,
+        bound=build(cfg.bound, "bound") if cfg.get("bound") is not None else None)
 
 
 def describe_exception(exc: BaseException) -> tuple[str, str]:

@@ -50,3 +50,68 @@ def test_sonar_bounds_shrink_when_active_and_the_trackers_sit_above_the_clairvoy
     metrics = study.per_step_metrics(truth, build(cfg.filters.only_mgekf, "f").run(reports), sensor)
     ratio = metrics["position_rmse_over_bound"]
     assert np.nanmedian(ratio[1:]) > 1.0, np.nanmedian(ratio[1:])           # no estimator beats it
+
+
+# ---- the single-target studies' bounds (pipeline.stages.bounds) ---------------------------------
+def test_study_001_known_input_bound_is_the_covariance_of_an_imm_of_identical_models():
+    """Linear-Gaussian with a known input: the PCRLB is the mode-matched Kalman covariance; an IMM
+    whose models are all the same is that filter, started the same way (two-point, scans 0-1)."""
+    from filters.base import MeasurementSeries
+    from filters.imm import FSIMM
+    from filters.models import AccelerationModelSet
+    from pipeline.data import Truth
+    from pipeline.sensors.position import PositionSensor
+    from pipeline.stages.bounds import KnownInputBound
+
+    q, noise, K = 3.0, 15.0, 40
+    models = AccelerationModelSet.from_config({"a": [0, 0], "b": [0, 0]}, [[0.9, 0.1], [0.1, 0.9]],
+                                              process_noise_std=q)
+    time = np.arange(K, dtype=float)
+    truth = Truth(time, np.zeros((1, K, 1, 4)), ("x", "vx", "y", "vy"), {})
+    z = np.random.default_rng(0).standard_normal((1, K, 2)) * noise
+    series = MeasurementSeries(time, z, noise**2 * np.eye(2), np.ones((1, K), bool), np.zeros(K, dtype=int))
+    P = FSIMM(models, initial_model="a").run(series).covariance[0]
+    bound = KnownInputBound(q).position_bound(truth, PositionSensor(noise_std=noise))
+    assert np.isnan(bound[0])
+    np.testing.assert_allclose(bound[1:], np.sqrt(P[1:, 0, 0] + P[1:, 2, 2]), rtol=1e-9)
+
+
+def test_study_000_radar_information_is_the_polar_jacobian_information():
+    """E[H' R_p^-1 H] with H the finite-difference Jacobian of (range, azimuth, elevation)."""
+    from filters.coordinates import line_of_sight_angles
+    from pipeline.data import Truth
+    from pipeline.sensors.radar3d import Radar3D
+    from pipeline.stages.bounds import RadarSingerBound
+
+    radar = Radar3D(position=[100.0, -50.0, 10.0], range_std=10.0, azimuth_std=0.007, elevation_std=0.006)
+    p = np.array([8000.0, 4000.0, 2000.0])
+    state = np.zeros((1, 1, 1, 9))
+    state[..., :3] = p
+    truth = Truth(np.zeros(1), state, ("x", "y", "z", "vx", "vy", "vz", "ax", "ay", "az"), {})
+    info = RadarSingerBound(10.0, 5.0).information(truth, radar)[0]
+
+    def polar(q):
+        return np.array(line_of_sight_angles(q - radar.position))
+
+    H = np.stack([(polar(p + d) - polar(p - d)) / 2e-3 for d in 1e-3 * np.eye(3)], axis=1)
+    np.testing.assert_allclose(info, H.T @ np.linalg.inv(radar.noise_covariance) @ H, rtol=1e-5)
+
+
+def test_studies_001_and_000_report_rmse_over_the_bound(tmp_path):
+    import polars as pl
+
+    from pipeline.runner import RunContext, run_experiment
+
+    for experiment in ("ao_vsimm_s1", "mie_los"):
+        overrides = [f"experiment={experiment}", "mc.runs=3", "record.enabled=false", f"paths.artifacts={tmp_path}"]
+        with initialize_config_dir(version_base="1.3", config_dir=str(CONF)):
+            cfg = compose("config", overrides=overrides)
+        outcome = run_experiment(cfg, RunContext(tmp_path / "runs" / experiment, tmp_path, overrides))
+        m = outcome.metrics
+        for key in cfg.filters:
+            mine = m.filter(pl.col("variant_key") == key)
+            bound = mine.filter(pl.col("metric") == "position_bound").sort("step")["value"].to_numpy()
+            ratio = mine.filter(pl.col("metric") == "position_rmse_over_bound").sort("step")["value"].to_numpy()
+            rmse = mine.filter(pl.col("metric") == "position_rmse").sort("step")["value"].to_numpy()
+            assert np.all(np.isfinite(bound[1:])) and np.all(bound[1:] > 0), (experiment, key)
+            np.testing.assert_allclose(ratio[2:], rmse[2:] / bound[2:])

@@ -298,7 +298,8 @@ def test_pipeline_with_the_stub_writes_the_new_metrics(study_run):
     metrics = pl.read_parquet(ctx.run_dir / "metrics.parquet")
     expected = {"position_rmse", "velocity_rmse", "acceleration_rmse", "nees", "nees_lower", "nees_upper",
                 "input_level_x", "input_level_y",
-                "input_level_z", "detections", "detections_axis_x", "detections_axis_y", "detections_axis_z"}
+                "input_level_z", "detections", "detections_axis_x", "detections_axis_y", "detections_axis_z",
+                "position_bound", "position_rmse_over_bound"}          # the stub exports no NIS
     assert set(metrics["metric"]) == expected
 
     def series(metric, variant="b"):
@@ -454,7 +455,9 @@ def test_study_001_printed_table_is_unchanged(tmp_path):
     out, ctx = run_in_process(tmp_path, "s1", "mc.runs=2", "scenario.steps=30")
     assert out.table == format_summary(out.summary, "ao_vsimm_s1", 2)
     assert set(out.metrics["metric"]) == {"acceleration_rmse_x", "acceleration_rmse_y", "position_rmse",
-                                          "velocity_rmse", "nees", "nees_lower", "nees_upper", "models_evaluated"}
+                                          "velocity_rmse", "nees", "nees_lower", "nees_upper", "models_evaluated",
+                                          "nis", "nis_lower", "nis_upper", "position_bound",
+                                          "position_rmse_over_bound"}
     assert set(out.summary["window"].drop_nulls()) == {"all", "after_switch"}
     header = next(line for line in out.table.splitlines() if line.startswith("variant"))
     assert header.split("  ") and [c.strip() for c in header.split("  ") if c.strip()] == [

@@ -31,14 +31,18 @@ class SingleTargetStudy:
     Every experiment runs through an adapter with the same methods (``check``, ``track_input``,
     ``estimate_table`` / ``estimate_to_frame``, ``per_step_metrics``, ``metric_units``,
     ``record``); the bias, sonar and sonobuoy studies name theirs with a ``study`` node, the
-    others get this one. ``model_names`` / ``group_names`` label the IMMs' modes in the recording.
+    others get this one. ``model_names`` / ``group_names`` label the IMMs' modes in the recording;
+    ``bound`` (the config's ``bound`` node, pipeline.stages.bounds) adds the PCRLB metrics
+    ``position_bound`` and ``position_rmse_over_bound``.
     """
 
     estimate_table = "estimates"
 
-    def __init__(self, model_names: list[str] | None = None, group_names: list[str] | None = None) -> None:
+    def __init__(self, model_names: list[str] | None = None, group_names: list[str] | None = None,
+                 bound=None) -> None:
         self.model_names = model_names
         self.group_names = group_names
+        self.bound = bound
 
     def check(self, scenario, sensor, estimators: dict) -> None:
         """Nothing to cross-check beyond config.validate."""
@@ -59,14 +63,16 @@ class SingleTargetStudy:
         return fault_flags(estimate.state, estimate.covariance, checks, estimate.state - truth.state[:, :, 0, :],
                            estimate.extras.get("weights_underflow"))
 
-    @staticmethod
-    def per_step_metrics(truth, estimate, sensor) -> dict[str, np.ndarray]:
+    def per_step_metrics(self, truth, estimate, sensor) -> dict[str, np.ndarray]:
+        from pipeline.stages.bounds import bound_metrics
         from pipeline.stages.evaluate import per_step_metrics
-        return per_step_metrics(truth, estimate)
+        out = per_step_metrics(truth, estimate)
+        return out | bound_metrics(self.bound, truth, sensor, out["position_rmse"])
 
     @staticmethod
     def metric_units(names) -> dict[str, str]:
-        return {}                      # evaluate.UNITS already knows the generic names
+        from pipeline.stages.bounds import UNITS
+        return {n: UNITS[n] for n in names if n in UNITS}      # evaluate.UNITS knows the generic names
 
     def record(self, path, context: dict | None = None, **kwargs) -> None:
         from pipeline.recording import write_recording
