@@ -180,6 +180,12 @@ class BearingLikelihood:
         object.__setattr__(self, "_nominal_scale", ((1.0 - pc) / (np.sqrt(2.0 * np.pi) * std)).astype(f32))
         object.__setattr__(self, "_clutter_scale", (pc / (np.sqrt(2.0 * np.pi) * clutter)).astype(f32))
 
+    @property
+    def variance(self) -> np.ndarray:
+        """(C,) each component's noise variance: the mixture's (1 - p_c) s^2 + p_c s_c^2."""
+        pc = float(self.clutter_probability)
+        return (1.0 - pc) * np.asarray(self.std, dtype=float) ** 2 + pc * np.asarray(self.clutter_std, dtype=float) ** 2
+
     def subset(self, columns: slice) -> "BearingLikelihood":
         return BearingLikelihood(self.std[columns], self.clutter_std[columns], self.clutter_probability)
 
@@ -449,6 +455,28 @@ class SonobuoyModel:
         X_new[..., 4:] = (buoys_next + increments[..., 1:, :]).reshape(R, N, 16)
         return X_new
 
+    def innovation_nis(self, X: np.ndarray, log_weights: np.ndarray, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(R,) NIS of scan k's received bearings against the predicted cloud, and its dof (R,).
+
+        ``X`` (R, N, 20) the propagated particles and ``log_weights`` their weights as a sample of the
+        prediction p(x_k | z_1..k-1). The predicted bearings' mean and covariance are the cloud's
+        (exact moments, no linearisation), plus the measurement noise; clutter is taken as noise
+        of the mixture's variance (1 - p_c) s^2 + p_c s_c^2 (measurement-origin uncertainty
+        ignored), so the mean NIS of a consistent filter is the dof while the chi-square band is only
+        approximate in clutter (the mixture's tails are heavier).
+        """
+        # float32 as the likelihoods (see _target_log_likelihood): ~1e-7 rad against degrees of noise
+        weights = normalise_log(log_weights).astype(np.float32)
+        predicted = bearings(X.astype(np.float32), self.observer.astype(np.float32))       # (R, N, 8)
+        reference = predicted[:, :1]
+        deviation = wrap(predicted - reference)
+        mean = (weights[:, None, :] @ deviation)[:, 0]                                   # (R, 8)
+        centred = deviation - mean[:, None, :]
+        S = (np.swapaxes(centred * weights[..., None], -1, -2) @ centred).astype(np.float64)
+        reference, mean = reference.astype(np.float64), mean.astype(np.float64)
+        S = S + np.diag(np.concatenate([self.target_part.variance, self.buoy_part.variance]))
+        return _masked_nis(wrap(z - reference[:, 0] - mean), S)
+
     def log_likelihood(self, X: np.ndarray, z: np.ndarray) -> np.ndarray:
         R, N = X.shape[:2]
         buoys = X[..., 4:].reshape(R, N, BUOYS, 4)[..., :2]
@@ -502,7 +530,8 @@ def filter_jump_markov(model, tpm: np.ndarray, time: np.ndarray, z: np.ndarray, 
     (particle, mode) pair, joint systematic resampling of (parent, mode), propagation, second-stage
     weights p(z|x)/p(z|mu). Otherwise the bootstrap SIR-MM (mode from the transition matrix).
     Then output moments, resample every scan (seed step 5) and regularise (Liu-West, ``lw_h``).
-    Returns states (R, K, n), covariances, extras (mode_probabilities, ess[, particles, particle_modes]).
+    Returns states (R, K, n), covariances, extras (mode_probabilities, ess, weights_underflow, nis,
+    nis_dof[, particles, particle_modes]); the NIS when the model has ``innovation_nis``.
     """
     R, K = z.shape[:2]
     N, M, n = particles, model.modes, model.state_size
@@ -524,6 +553,7 @@ def filter_jump_markov(model, tpm: np.ndarray, time: np.ndarray, z: np.ndarray, 
         cloud[:, 0], cloud_modes[:, 0] = X[:, spaced], 0
     run_index = np.arange(R)[:, None]
     underflow = np.zeros((R, K), dtype=bool)
+    nis, nis_dof = np.full((R, K), np.nan), np.zeros((R, K))
     for k in range(1, K):
         dt = float(time[k] - time[k - 1])
         zk = z[:, k]
@@ -544,6 +574,9 @@ def filter_jump_markov(model, tpm: np.ndarray, time: np.ndarray, z: np.ndarray, 
         # float32 normals: half the generator time; they only scale small perturbations
         noise = _stack(gens, lambda g: g.standard_normal((N,) + tuple(model.noise_shape), dtype=np.float32))
         X_new = model.propagate(X, parent, new_mode, noise, dt, context)              # eq 15
+        # the propagated cloud reweighted by 1 / p(z | mu) (auxiliary) is a sample of the prediction
+        if hasattr(model, "innovation_nis"):
+            nis[:, k], nis_dof[:, k] = model.innovation_nis(X_new, np.broadcast_to(-first_at_pick, (R, N)), zk)
         log_weights, lost = _restart_if_underflowed(model.log_likelihood(X_new, zk) - first_at_pick)
         underflow[:, k] |= lost
         weights = normalise_log(log_weights)                                           # eq 17
@@ -557,10 +590,24 @@ def filter_jump_markov(model, tpm: np.ndarray, time: np.ndarray, z: np.ndarray, 
             X = liu_west(X, lw_h, _stack(gens, lambda g: g.standard_normal((N, n), dtype=np.float32)))
         if P:
             cloud[:, k], cloud_modes[:, k] = X[:, spaced], modes[:, spaced]
-    extras = {"mode_probabilities": mode_probability, "ess": ess, "weights_underflow": underflow}
+    extras = {"mode_probabilities": mode_probability, "ess": ess, "weights_underflow": underflow, "nis": nis,
+              "nis_dof": nis_dof}
     if P:
         extras.update(particles=cloud, particle_modes=cloud_modes)
     return states, covariances, extras
+
+
+def _masked_nis(residual: np.ndarray, S: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(R, C) residuals (NaN: the component was missed) and (R, C, C) innovation covariances ->
+    (R,) nu' S^-1 nu over the received components and (R,) their number (NaN NIS where none)."""
+    received = np.isfinite(residual)
+    both = received[:, :, None] & received[:, None, :]
+    eye = np.eye(residual.shape[-1], dtype=bool)
+    S = np.where(both, S, np.where(eye, 1.0, 0.0))               # a missed component: decoupled, unit
+    nu = np.where(received, residual, 0.0)
+    nis = einsum("ri,ri->r", nu, np.linalg.solve(S, nu[..., None])[..., 0])
+    dof = received.sum(axis=-1).astype(float)
+    return np.where(dof > 0, nis, np.nan), dof
 
 
 def _restart_if_underflowed(log_weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -590,6 +637,7 @@ class BearingsEKF(_ModelParameters):
         states = np.full((R, K, 20), np.nan)
         covariances = np.full((R, K, 20, 20), np.nan)
         states[:, 0], covariances[:, 0] = x, P
+        nis, nis_dof = np.full((R, K), np.nan), np.zeros((R, K))     # its own innovation (moment-matched R)
         observer = np.asarray(reports.observer, dtype=float)
         for k in range(1, K):
             dt = float(reports.time[k] - reports.time[k - 1])
@@ -607,13 +655,15 @@ class BearingsEKF(_ModelParameters):
             Rm = Rm + np.eye(8) * (~received)[:, None, :]
             PHt = P @ np.swapaxes(H, -1, -2)
             S = H @ PHt + Rm
+            nis[:, k], nis_dof[:, k] = _masked_nis(np.where(received, residual, np.nan), S)
             gain = np.swapaxes(np.linalg.solve(S, np.swapaxes(PHt, -1, -2)), -1, -2)
             x = x + einsum("rij,rj->ri", gain, residual)
             A = np.eye(20) - gain @ H
             P = A @ P @ np.swapaxes(A, -1, -2) + gain @ Rm @ np.swapaxes(gain, -1, -2)
             P = 0.5 * (P + np.swapaxes(P, -1, -2))
             states[:, k], covariances[:, k] = x, P
-        return TrackEstimate(reports.time.copy(), states, covariances, {}, _time.perf_counter() - started)
+        return TrackEstimate(reports.time.copy(), states, covariances, {"nis": nis, "nis_dof": nis_dof},
+                             _time.perf_counter() - started)
 
 
 def bearing_jacobian(state: np.ndarray, observer: np.ndarray) -> np.ndarray:

@@ -496,6 +496,17 @@ def _sonobuoy_blueprint(rrb, record_runs: list[int], variant_keys: list[str], di
         tabs.append(rrb.TimeSeriesView(origin="/", contents=ess, axis_x=whole_run, plot_legend=legend,
                                        name="effective sample size [particles] (mean bold" +
                                             (f", run {r0} thin)" if r0 is not None else ")")))
+    if "nis" in present:
+        tabs.append(rrb.TimeSeriesView(origin="/metrics/nis", axis_x=whole_run, plot_legend=legend,
+                                       name="NIS of the received bearings (mean of the runs; thin: χ² 95 % band)"))
+    if "position_rmse_over_bound" in present:
+        tabs.append(rrb.TimeSeriesView(origin="/metrics/position_rmse_over_bound", axis_x=whole_run,
+                                       plot_legend=legend, name="position RMSE / sqrt(PCRLB) (clairvoyant, clutter ignored)"))
+        tabs.append(rrb.TimeSeriesView(origin="/metrics", contents=["/metrics/position_rmse/**",
+                                                                    "/metrics/position_bound/**",
+                                                                    "/metrics/position_bound_model/**"],
+                                       axis_x=whole_run, plot_legend=legend, axis_y=rrb.ScalarAxis(),
+                                       name="position RMSE and sqrt(PCRLB) [m] (truth's / filters' noise)"))
     be = rrb.encodings
     tabs.append(rrb.TextLogView(origin="/notes", name="Notes", columns=rrb.TextLogColumns(
         timeline_columns=[be.TimelineColumn("step", visible=False), be.TimelineColumn("time", visible=False)],

@@ -55,7 +55,7 @@ def case():
                                                 "ess": rng.uniform(10, 30, (RUNS, K))}),
         "ekf": _estimate(truth, rng, 120.0, {}),
     }
-    per_variant = {k: (VARIANTS[k], SonobuoyStudy.per_step_metrics(truth, est, sensor)) for k, est in estimates.items()}
+    per_variant = {k: (VARIANTS[k], SonobuoyStudy().per_step_metrics(truth, est, sensor)) for k, est in estimates.items()}
     metrics = metrics_frame(truth.time, per_variant, RUNS)
     return dict(truth=truth, det=det, sensor=sensor, estimates=estimates, metrics=metrics)
 

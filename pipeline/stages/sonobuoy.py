@@ -22,17 +22,22 @@ from typing import Sequence
 
 import numpy as np
 
-from filters.particle import STATE_NAMES, BuoyReports, MultipleModelParticleFilter
+from filters.particle import NOISE_GAINS, STATE_NAMES, BuoyReports, MultipleModelParticleFilter
 from pipeline import schemas
 from pipeline.data import Detections, Truth
 from pipeline.errors import ConfigError
 from pipeline.seeding import run_generators
-from pipeline.stages.evaluate import _quiet_nanmean, consistency_metrics
+from pipeline.stages.evaluate import _quiet_nanmean, consistency_metrics, nis_metrics
 
 UNITS = {"position_rmse": "m", "position_median_error": "m", "buoy_position_rmse": "m", "buoy_position_median_error": "m",
          "nees_position": "1 (chi2 dof = 2)", "nees_position_lower": "1 (95 % chi2 band of the run average)",
          "nees_position_upper": "1 (95 % chi2 band of the run average)", "nees_position_median": "1 (chi2 dof = 2: median 1.39)", "ess": "particles", "mode_probability_cv": "probability",
          "mode_probability_ccw": "probability", "mode_probability_cw": "probability",
+         "nis": "1 (chi2 dof = received bearings)", "nis_lower": "1 (95 % chi2 band of the run average)",
+         "nis_upper": "1 (95 % chi2 band of the run average)",
+         "position_bound": "m (sqrt trace of the clairvoyant PCRLB target position block, clutter ignored)",
+         "position_bound_model": "m (the same with the filters' target process noise)",
+         "position_rmse_over_bound": "ratio (position RMSE / sqrt(PCRLB))",
          "track_loss_rate": "fraction of runs", "final_position_rmse": "m", "peak_median_error": "m"}
 MODE_NAMES = ("cv", "ccw", "cw")
 
@@ -56,7 +61,8 @@ class SonobuoyStudy:
     def __init__(self, target_prior: str = "truth", target_std: Sequence[float] = (1000.0, 1000.0, 2.0, 2.0),
                  buoy_std: Sequence[float] = (100.0, 100.0, 0.05, 0.05),
                  field_target_mean: Sequence[float] = (0.0, 0.0, 0.0, 0.0), loss_threshold: float = 2000.0,
-                 peak_windows: dict | None = None) -> None:
+                 peak_windows: dict | None = None, bound_buoy_sigma: float | None = None,
+                 bound_noise_gain: str = "standard", bound_model_target_sigma: float | None = None) -> None:
         if target_prior not in ("truth", "field"):
             raise ValueError(f"target_prior: {target_prior!r} is not allowed; use 'truth' (truth + N(0, P0)) or "
                              f"'field' (field_target_mean)")
@@ -73,6 +79,14 @@ class SonobuoyStudy:
         self.field_target_mean = np.asarray(field_target_mean, dtype=float)
         self.loss_threshold = float(loss_threshold)
         self.peak_windows = {str(k): (float(v[0]), float(v[1])) for k, v in (peak_windows or {}).items()}
+        for key, value in (("bound_buoy_sigma", bound_buoy_sigma), ("bound_model_target_sigma", bound_model_target_sigma)):
+            if value is not None and not (np.isfinite(value) and value >= 0):
+                raise ValueError(f"{key}: {value} must be a finite std >= 0 [m/s^2] (or null: no bound)")
+        if bound_noise_gain not in NOISE_GAINS:
+            raise ValueError(f"bound_noise_gain: {bound_noise_gain!r} must be one of {list(NOISE_GAINS)}")
+        self.bound_buoy_sigma = None if bound_buoy_sigma is None else float(bound_buoy_sigma)
+        self.bound_noise_gain = bound_noise_gain
+        self.bound_model_target_sigma = None if bound_model_target_sigma is None else float(bound_model_target_sigma)
         for name, (t0, t1) in self.peak_windows.items():
             if not t0 <= t1:
                 raise ValueError(f"peak_windows.{name}: [{t0}, {t1}] must have t0 <= t1 (seconds)")
@@ -101,8 +115,7 @@ class SonobuoyStudy:
     def estimate_to_frame(estimate, truth=None):
         return schemas.estimate_to_frame(estimate, STATE_NAMES, compact_covariance=True)
 
-    @staticmethod
-    def per_step_metrics(truth: Truth, estimate, sensor) -> dict[str, np.ndarray]:
+    def per_step_metrics(self, truth: Truth, estimate, sensor) -> dict[str, np.ndarray]:
         true = truth.state[:, :, 0]
         error = np.linalg.norm(estimate.state[..., 0:2] - true[..., 0:2], axis=-1)          # (R, K)
         buoy_error = (estimate.state[..., 4:] - true[..., 4:]).reshape(error.shape + (4, 4))[..., 0:2]
@@ -126,12 +139,62 @@ class SonobuoyStudy:
             # centimetres, error of metres) dominates it: the median shows the typical run
             out["nees_position_median"] = np.nanmedian(np.where(ok, nees, np.nan), axis=0)
             extras = estimate.extras
+            out.update(nis_metrics(extras))
             if "ess" in extras:
                 out["ess"] = np.nanmean(extras["ess"], axis=0)
             if "mode_probabilities" in extras:
                 for m, name in enumerate(MODE_NAMES):
                     out[f"mode_probability_{name}"] = np.nanmean(extras["mode_probabilities"][..., m], axis=0)
+        if self.bound_buoy_sigma is not None:
+            bound = self.position_bound(truth, sensor, 0.0)
+            out["position_bound"] = bound
+            with np.errstate(invalid="ignore", divide="ignore"):
+                out["position_rmse_over_bound"] = out["position_rmse"] / bound
+            if self.bound_model_target_sigma is not None:
+                out["position_bound_model"] = self.position_bound(truth, sensor, self.bound_model_target_sigma)
         return out
+
+    def position_bound(self, truth: Truth, sensor, target_sigma: float) -> np.ndarray:
+        """(K,) sqrt(trace) of the target position block of the PCRLB (filters.bounds) of the 20
+        states [m], with the true mode sequence known and measurement-origin uncertainty ignored.
+
+        Dynamics: the target's own transition at each step, the coordinated turn at the truth's turn
+        rate (the heading change over the step; CV when straight), with process noise
+        ``target_sigma`` (0: the truth's, a bound for any estimator of this truth; the filters'
+        value: the bound of their model), the buoys CV with ``bound_buoy_sigma`` through Gamma (seed
+        eqs 2-6). Information per scan: E over the runs (the buoys drift differently) of
+        (1 - miss probability) sum_i h_i' h_i / s_i^2 over the 8 bearings at the true state, the
+        nominal noise s_i: every received bearing is taken as the object's own, so in clutter
+        (spec 004 cases 2, 2B: half of them) the bound is optimistic, a floor no tracker reaches.
+        Start: the filters' prior P0 at scan 0 (no measurement then); with ``target_prior: field``
+        the prior mean is not centred on the truth, so the bound is indicative there.
+        """
+        from filters.bounds import posterior_crlb
+        from filters.particle import bearing_jacobian, ct_transition, cv_transition, noise_gain
+
+        time = truth.time
+        K = time.size
+        true = truth.state[:, :, 0]                                                      # (R, K, 20)
+        heading = np.arctan2(true[0, :, 2], true[0, :, 3])                               # the target is the same in every run
+        F = np.zeros((K, 20, 20))
+        Q = np.zeros((K, 20, 20))
+        for k in range(1, K):
+            dt = float(time[k] - time[k - 1])
+            omega = -float(np.angle(np.exp(1j * (heading[k] - heading[k - 1])))) / dt   # heading from north: Omega < 0 turns right
+            F[k] = 0.0
+            F[k, 0:4, 0:4] = ct_transition(omega, dt)
+            gamma = noise_gain(dt, self.bound_noise_gain)
+            for i in range(5):
+                if i:
+                    F[k, 4 * i:4 * i + 4, 4 * i:4 * i + 4] = cv_transition(dt)
+                sigma = target_sigma if i == 0 else self.bound_buoy_sigma
+                Q[k, 4 * i:4 * i + 4, 4 * i:4 * i + 4] = sigma**2 * gamma @ gamma.T
+        H = bearing_jacobian(true.reshape(-1, 20), np.asarray(sensor.observer_position, dtype=float))
+        H = H.reshape(true.shape[:2] + (8, 20))                                           # (R, K, 8, 20)
+        weighted = H / np.asarray(sensor.nominal_std, dtype=float)[:, None]
+        information = (1.0 - float(sensor.miss_probability)) * np.mean(np.swapaxes(weighted, -1, -2) @ weighted, axis=0)
+        bounds = posterior_crlb(F, Q, np.diag(self.prior_std**2), information)
+        return np.sqrt(bounds[:, 0, 0] + bounds[:, 1, 1])
 
     @staticmethod
     def metric_units(names) -> dict[str, str]:
