@@ -1,0 +1,491 @@
+"""Reproduction report: ``python -m pipeline.report <run dir | sweep dir | --latest> [--out DIR] [--check]``.
+
+For each run (a folder with ``summary.parquet``, ``metrics.parquet``, ``config.yaml`` and
+``status.json``, as the runner writes it) a Markdown report with PNG figures (matplotlib, Agg),
+made from the stored tables alone:
+
+- **Reproduction targets**: each of the spec's targets with the paper's / spec's value, the value
+  measured in this run and PASS / FAIL (ERROR when its query fails or returns no row);
+- **Figures**: the experiment's figures, each drawn from a named SQL query (shown with it);
+- **How far from the limit**: NEES / NIS run averages with the share of steps inside their 95 %
+  chi-square band, RMSE / sqrt(PCRLB) per window, and their figures over time;
+- the summary table and the study's own tables (as printed at the end of the run).
+
+Experiments declare their part in their YAML under ``report`` (next to ``report.tables``):
+
+``report.queries``  name -> SQL over this run's tables ``summary`` and ``metrics`` (the Parquet
+    files; NaN read as NULL so AVG skips it);
+``report.figures``  name -> {title, query (a query name or SQL), x, y, series, lower, upper, kind
+    (line | step | bar), xlabel, ylabel, logy, reference: [{label, x: [...], y: [...]}]}: one line
+    per value of ``series`` (the paper's points drawn as markers from ``reference``);
+``report.targets``  list of {id, target, paper, query}: the query returns one row with a text column
+    ``measured`` and a boolean ``pass``.
+
+A sweep folder (``multirun/<time>``, or any folder holding runs below it) gets one report per run and
+an ``index.md`` with each run's targets passed. ``--check`` exits 1 when any target is FAIL or
+ERROR. Reports go to ``<run>/report/`` unless ``--out`` is given.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Mapping, Sequence
+
+import polars as pl
+
+FIGURE_KEYS = {"title", "query", "x", "y", "series", "lower", "upper", "kind", "xlabel", "ylabel", "logy",
+               "reference"}
+TARGET_KEYS = {"id", "target", "paper", "query"}
+KINDS = ("line", "step", "bar")
+
+# Built-in named queries: the limits section of every report. ``{metric}`` is filled per figure.
+BUILTIN_QUERIES = {
+    "consistency": """
+WITH v AS (SELECT variant, metric, step, value FROM metrics),
+lo AS (SELECT variant, REPLACE(metric, '_lower', '') AS metric, step, value AS lower
+       FROM metrics WHERE ENDS_WITH(metric, '_lower')),
+up AS (SELECT variant, REPLACE(metric, '_upper', '') AS metric, step, value AS upper
+       FROM metrics WHERE ENDS_WITH(metric, '_upper'))
+SELECT v.variant, v.metric, AVG(v.value) AS mean, AVG(lo.lower) AS band_lower, AVG(up.upper) AS band_upper,
+       AVG(CASE WHEN v.value BETWEEN lo.lower AND up.upper THEN 1.0 ELSE 0.0 END) AS share_in_band,
+       COUNT(*) AS steps
+FROM v JOIN lo ON v.variant = lo.variant AND v.metric = lo.metric AND v.step = lo.step
+JOIN up ON v.variant = up.variant AND v.metric = up.metric AND v.step = up.step
+WHERE v.value IS NOT NULL AND lo.lower IS NOT NULL
+GROUP BY v.variant, v.metric ORDER BY v.metric, v.variant""",
+    "consistency_by_step": """
+WITH v AS (SELECT variant, metric, step, time, value FROM metrics WHERE metric = '{metric}'),
+lo AS (SELECT variant, step, value AS lower FROM metrics WHERE metric = '{metric}_lower'),
+up AS (SELECT variant, step, value AS upper FROM metrics WHERE metric = '{metric}_upper')
+SELECT v.variant, v.time, v.value, lo.lower, up.upper
+FROM v JOIN lo ON v.variant = lo.variant AND v.step = lo.step
+JOIN up ON v.variant = up.variant AND v.step = up.step
+ORDER BY v.variant, v.time""",
+    "bound_ratio_by_window": """
+SELECT variant, "window", value AS rmse_over_bound FROM summary
+WHERE metric = 'position_rmse_over_bound' AND "window" IS NOT NULL ORDER BY "window", variant""",
+    "bound_ratio_by_step": """
+SELECT variant, time, value FROM metrics WHERE metric = 'position_rmse_over_bound' ORDER BY variant, time""",
+    "compute": """
+SELECT variant, value AS compute_seconds FROM summary WHERE metric = 'compute_seconds' ORDER BY variant""",
+}
+
+
+class ReportError(ValueError):
+    """A report definition or a run folder that cannot be reported; the message names the key."""
+
+
+@dataclass(frozen=True)
+class FigureSpec:
+    name: str
+    title: str
+    query: str
+    x: str
+    y: str
+    series: str | None = None
+    lower: str | None = None
+    upper: str | None = None
+    kind: str = "line"
+    xlabel: str = ""
+    ylabel: str = ""
+    logy: bool = False
+    reference: tuple[Mapping[str, Any], ...] = ()
+
+
+@dataclass(frozen=True)
+class TargetSpec:
+    id: str
+    target: str
+    paper: str
+    query: str
+
+
+@dataclass(frozen=True)
+class ReportSpec:
+    queries: Mapping[str, str]
+    figures: tuple[FigureSpec, ...]
+    targets: tuple[TargetSpec, ...]
+
+    @classmethod
+    def from_config(cls, node: Mapping[str, Any] | None) -> "ReportSpec":
+        """Validate ``report.queries / figures / targets`` (a plain mapping: the run's config.yaml)."""
+        node = dict(node or {})
+        queries = dict(node.get("queries") or {})
+        for name, sql in queries.items():
+            if not isinstance(sql, str) or not sql.strip():
+                raise ReportError(f"report.queries.{name}: {sql!r} must be an SQL string over summary / metrics")
+        clash = set(queries) & set(BUILTIN_QUERIES)
+        if clash:
+            raise ReportError(f"report.queries: {sorted(clash)} are built-in query names; pick other names")
+        figures = []
+        for name, fig in (node.get("figures") or {}).items():
+            fig = dict(fig or {})
+            unknown = set(fig) - FIGURE_KEYS
+            missing = {"query", "x", "y"} - set(fig)
+            if unknown or missing:
+                raise ReportError(f"report.figures.{name}: " + (f"unknown key(s) {sorted(unknown)}; " if unknown else "")
+                                  + (f"missing {sorted(missing)}; " if missing else "")
+                                  + f"allowed keys are {sorted(FIGURE_KEYS)}")
+            kind = str(fig.get("kind", "line"))
+            if kind not in KINDS:
+                raise ReportError(f"report.figures.{name}.kind: {kind!r} is not one of {list(KINDS)}")
+            reference = tuple(dict(r) for r in fig.get("reference") or ())
+            for i, r in enumerate(reference):
+                if set(r) != {"label", "x", "y"} or len(list(r["x"])) != len(list(r["y"])):
+                    raise ReportError(f"report.figures.{name}.reference[{i}]: {r} must be {{label, x: [...], y: [...]}} "
+                                      f"with as many x as y")
+            figures.append(FigureSpec(str(name), str(fig.get("title", name)), _resolve(fig["query"], queries, name),
+                                      str(fig["x"]), str(fig["y"]), _opt(fig.get("series")), _opt(fig.get("lower")),
+                                      _opt(fig.get("upper")), kind, str(fig.get("xlabel", fig["x"])),
+                                      str(fig.get("ylabel", fig["y"])), bool(fig.get("logy", False)), reference))
+        targets, seen = [], set()
+        for i, target in enumerate(node.get("targets") or ()):
+            target = dict(target or {})
+            if set(target) != TARGET_KEYS:
+                raise ReportError(f"report.targets[{i}]: keys {sorted(target)} must be exactly {sorted(TARGET_KEYS)}")
+            if target["id"] in seen:
+                raise ReportError(f"report.targets[{i}].id: {target['id']!r} is used twice")
+            seen.add(target["id"])
+            targets.append(TargetSpec(str(target["id"]), str(target["target"]).strip(), str(target["paper"]).strip(),
+                                      _resolve(target["query"], queries, f"targets[{i}]")))
+        return cls(queries, tuple(figures), tuple(targets))
+
+
+def _opt(value: Any) -> str | None:
+    return None if value is None else str(value)
+
+
+def _resolve(query: str, queries: Mapping[str, str], where: str) -> str:
+    """A query name (from report.queries or the built-ins) or the SQL itself."""
+    query = str(query)
+    if query in queries:
+        return queries[query]
+    if query in BUILTIN_QUERIES:
+        return BUILTIN_QUERIES[query]
+    if not any(word in query.upper() for word in ("SELECT", "WITH")):
+        raise ReportError(f"report.{where}: query {query!r} is neither SQL nor a name in report.queries "
+                          f"({sorted(queries)}) or the built-ins ({sorted(BUILTIN_QUERIES)})")
+    return query
+
+
+# ---- a run's tables ----------------------------------------------------------------------------
+@dataclass(frozen=True)
+class RunTables:
+    run_dir: Path
+    experiment: str
+    config: Mapping[str, Any]
+    status: Mapping[str, Any]
+    summary: pl.DataFrame
+    metrics: pl.DataFrame
+
+    def query(self, sql: str) -> pl.DataFrame:
+        context = pl.SQLContext(summary=self.summary, metrics=self.metrics, eager=True)
+        return context.execute(sql)
+
+
+def load_run(run_dir: Path) -> RunTables:
+    from omegaconf import OmegaConf
+
+    run_dir = Path(run_dir)
+    missing = [n for n in ("summary.parquet", "metrics.parquet", "config.yaml", "status.json")
+               if not (run_dir / n).is_file()]
+    if missing:
+        raise ReportError(f"{run_dir}: not a finished run folder: {missing} missing (a run writes summary.parquet, "
+                          f"metrics.parquet, config.yaml and status.json)")
+    status = json.loads((run_dir / "status.json").read_text())
+    config = OmegaConf.to_container(OmegaConf.load(run_dir / "config.yaml"), resolve=False)
+
+    def read(name: str) -> pl.DataFrame:
+        df = pl.read_parquet(run_dir / name)
+        floats = [c for c, t in df.schema.items() if t in (pl.Float32, pl.Float64)]
+        return df.with_columns(pl.col(c).fill_nan(None) for c in floats)
+
+    return RunTables(run_dir, str(status.get("experiment") or config.get("experiment_name")), config, status,
+                     read("summary.parquet"), read("metrics.parquet"))
+
+
+# ---- targets and figures -----------------------------------------------------------------------
+@dataclass(frozen=True)
+class TargetResult:
+    spec: TargetSpec
+    measured: str
+    verdict: str               # PASS | FAIL | ERROR
+
+
+def evaluate_target(tables: RunTables, spec: TargetSpec) -> TargetResult:
+    try:
+        df = tables.query(spec.query)
+    except Exception as exc:  # noqa: BLE001 - a broken query is reported, not raised
+        return TargetResult(spec, f"query failed: {type(exc).__name__}: {str(exc).splitlines()[0]}", "ERROR")
+    if df.height != 1 or not {"measured", "pass"} <= set(df.columns):
+        return TargetResult(spec, f"query returned {df.height} row(s) with columns {df.columns}; expected one row "
+                                  f"with 'measured' and 'pass'", "ERROR")
+    row = df.row(0, named=True)
+    verdict = "ERROR" if row["pass"] is None else ("PASS" if bool(row["pass"]) else "FAIL")
+    return TargetResult(spec, str(row["measured"]), verdict)
+
+
+def draw_figure(df: pl.DataFrame, spec: FigureSpec, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    needed = [c for c in (spec.x, spec.y, spec.series, spec.lower, spec.upper) if c]
+    absent = [c for c in needed if c not in df.columns]
+    if absent:
+        raise ReportError(f"report.figures.{spec.name}: the query's columns {df.columns} lack {absent}")
+    fig, ax = plt.subplots(figsize=(8.0, 4.2), dpi=110)
+    groups = [(None, df)] if spec.series is None else [
+        (key[0], part) for key, part in df.group_by(spec.series, maintain_order=True)]
+    width = 0.8 / max(len(groups), 1)
+    for i, (label, part) in enumerate(groups):
+        x, y = part[spec.x].to_numpy(), part[spec.y].to_numpy().astype(float)
+        name = None if label is None else str(label)
+        if spec.kind == "bar":
+            positions = range(len(x))
+            ax.bar([p + i * width for p in positions], y, width=width, label=name)
+            ax.set_xticks([p + 0.4 - width / 2 for p in positions], [str(v) for v in x], rotation=30, ha="right")
+            continue
+        plot = ax.step if spec.kind == "step" else ax.plot
+        (line,) = plot(x, y, label=name, linewidth=1.6, **({"where": "mid"} if spec.kind == "step" else {}))
+        if spec.lower and spec.upper:
+            ax.fill_between(x, part[spec.lower].to_numpy().astype(float), part[spec.upper].to_numpy().astype(float),
+                            color=line.get_color(), alpha=0.12, linewidth=0)
+    for ref in spec.reference:
+        ax.plot(list(ref["x"]), list(ref["y"]), linestyle="none", marker="o", markersize=5, markerfacecolor="none",
+                color="black", label=str(ref["label"]))
+    ax.set_title(spec.title, fontsize=10)
+    ax.set_xlabel(spec.xlabel)
+    ax.set_ylabel(spec.ylabel)
+    if spec.logy:
+        ax.set_yscale("log")
+    ax.grid(True, alpha=0.3)
+    if groups[0][0] is not None or spec.reference:
+        ax.legend(fontsize=8)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp.png")
+    fig.savefig(tmp)
+    plt.close(fig)
+    tmp.replace(path)
+
+
+def limit_figures(tables: RunTables) -> list[FigureSpec]:
+    """One figure per consistency metric (X with X_lower / X_upper) and one of RMSE / sqrt(PCRLB)."""
+    names = set(tables.metrics["metric"].unique().to_list()) if tables.metrics.height else set()
+    out = []
+    for metric in sorted(m for m in names if f"{m}_lower" in names and f"{m}_upper" in names):
+        out.append(FigureSpec(f"limit_{metric}", f"{metric}: run average per step, shaded: its χ² 95 % band",
+                              BUILTIN_QUERIES["consistency_by_step"].replace("{metric}", metric), "time", "value",
+                              "variant", "lower", "upper", "line", "time [s]", metric, metric.startswith(("nees", "nis"))
+                              and _spread(tables, metric) > 30))
+    if "position_rmse_over_bound" in names:
+        out.append(FigureSpec("limit_rmse_over_bound", "position RMSE / sqrt(PCRLB) (1 = at the bound)",
+                              BUILTIN_QUERIES["bound_ratio_by_step"], "time", "value", "variant", kind="line",
+                              xlabel="time [s]", ylabel="RMSE / sqrt(PCRLB)"))
+    return out
+
+
+def _spread(tables: RunTables, metric: str) -> float:
+    values = tables.metrics.filter(pl.col("metric") == metric)["value"].drop_nulls()
+    if values.len() == 0 or values.min() is None or values.min() <= 0:
+        return 1.0
+    return float(values.max() / values.min())
+
+
+# ---- the Markdown ------------------------------------------------------------------------------
+@dataclass
+class RunReport:
+    run_dir: Path
+    path: Path
+    experiment: str
+    targets: list[TargetResult] = field(default_factory=list)
+    figures: list[Path] = field(default_factory=list)
+
+    @property
+    def counts(self) -> dict[str, int]:
+        return {v: sum(t.verdict == v for t in self.targets) for v in ("PASS", "FAIL", "ERROR")}
+
+
+def _md_table(df: pl.DataFrame, digits: int = 3) -> str:
+    def cell(v: Any) -> str:
+        if v is None:
+            return ""
+        if isinstance(v, float):
+            return "nan" if math.isnan(v) else f"{v:.{digits}g}" if abs(v) < 1e4 else f"{v:.0f}"
+        return str(v).replace("|", "\\|")
+    lines = ["| " + " | ".join(df.columns) + " |", "|" + "---|" * len(df.columns)]
+    lines += ["| " + " | ".join(cell(v) for v in row) + " |" for row in df.iter_rows()]
+    return "\n".join(lines)
+
+
+def _sql_block(name: str, sql: str) -> str:
+    return f"<details><summary>query <code>{name}</code></summary>\n\n```sql\n{sql.strip()}\n```\n</details>\n"
+
+
+def write_run_report(run_dir: Path, out_dir: Path | None = None) -> RunReport:
+    tables = load_run(run_dir)
+    spec = ReportSpec.from_config(tables.config.get("report"))
+    out_dir = Path(out_dir) if out_dir is not None else tables.run_dir / "report"
+    out_dir.mkdir(parents=True, exist_ok=True)
+    report = RunReport(tables.run_dir, out_dir / "report.md", tables.experiment)
+    status, config = tables.status, tables.config
+    lines = [f"# {tables.experiment}: reproduction report", ""]
+    if config.get("description"):
+        lines += [str(config["description"]).strip(), ""]
+    lines += [f"- run: `{tables.run_dir}` ({status.get('status')}, {status.get('runs')} Monte Carlo runs, seed "
+              f"{(config.get('mc') or {}).get('seed')}, config {status.get('config_hash')}, finished "
+              f"{status.get('finished_at')})",
+              f"- overrides: `{' '.join(status.get('overrides') or []) or '(none)'}`",
+              "- every number and figure below is computed from this run's `summary.parquet` and "
+              "`metrics.parquet` by the query shown with it (`python -m pipeline.report` rebuilds it)", ""]
+
+    report.targets = [evaluate_target(tables, t) for t in spec.targets]
+    lines += ["## Reproduction targets", ""]
+    if report.targets:
+        c = report.counts
+        lines += [f"**{c['PASS']} of {len(report.targets)} pass**" + (f", {c['FAIL']} fail" if c["FAIL"] else "")
+                  + (f", {c['ERROR']} error" if c["ERROR"] else "") + f" (at {status.get('runs')} runs; the spec's "
+                  f"references are at the paper's size).", "",
+                  "| id | target | paper / spec | measured here | result |", "|---|---|---|---|---|"]
+        for t in report.targets:
+            mark = {"PASS": "PASS", "FAIL": "**FAIL**", "ERROR": "**ERROR**"}[t.verdict]
+            lines.append(f"| {t.spec.id} | {_cell(t.spec.target)} | {_cell(t.spec.paper)} | {_cell(t.measured)} | {mark} |")
+        lines += [""] + [_sql_block(t.spec.id, t.spec.query) for t in report.targets] + [""]
+    else:
+        lines += ["This experiment declares no reproduction targets (`report.targets`).", ""]
+
+    if spec.figures:
+        lines += ["## Figures", ""]
+        for fig in spec.figures:
+            lines += _figure_section(tables, fig, out_dir, report)
+
+    lines += ["## How far from the limit", "",
+              "NEES / NIS: the run average per step against the two-sided 95 % chi-square band of that average "
+              "for a consistent filter; a share of steps in the band near 0.95 means consistent, a mean below "
+              "the band pessimistic, above it optimistic.", ""]
+    consistency = tables.query(BUILTIN_QUERIES["consistency"])
+    if consistency.height:
+        lines += [_md_table(consistency), "", _sql_block("consistency", BUILTIN_QUERIES["consistency"]), ""]
+    else:
+        lines += ["(no NEES / NIS bands in this run's metrics)", ""]
+    ratio = tables.query(BUILTIN_QUERIES["bound_ratio_by_window"])
+    if ratio.height:
+        lines += ["Position RMSE / sqrt(PCRLB) averaged over each summary window (the bound's model is named in "
+                  "the study's config and metric units; 1 = at the bound):", "",
+                  _md_table(ratio.pivot(on="window", index="variant", values="rmse_over_bound")), "",
+                  _sql_block("bound_ratio_by_window", BUILTIN_QUERIES["bound_ratio_by_window"]), ""]
+    for fig in limit_figures(tables):
+        lines += _figure_section(tables, fig, out_dir, report, heading="###")
+
+    compute = tables.query(BUILTIN_QUERIES["compute"])
+    if compute.height:
+        lines += ["## Compute", "", _md_table(compute), "", _sql_block("compute", BUILTIN_QUERIES["compute"]), ""]
+    printed = tables.run_dir / "report.txt"
+    if printed.is_file():
+        lines += ["## Tables printed by the run", "", "```", printed.read_text().rstrip(), "```", ""]
+    tmp = report.path.with_name(f".{report.path.name}.tmp")
+    tmp.write_text("\n".join(lines))
+    tmp.replace(report.path)
+    return report
+
+
+def _cell(text: str) -> str:
+    return " ".join(str(text).split()).replace("|", "\\|")
+
+
+def _figure_section(tables: RunTables, fig: FigureSpec, out_dir: Path, report: RunReport,
+                    heading: str = "###") -> list[str]:
+    path = out_dir / f"{fig.name}.png"
+    try:
+        df = tables.query(fig.query)
+        if df.height == 0:
+            raise ReportError("the query returned no rows")
+        draw_figure(df, fig, path)
+    except Exception as exc:  # noqa: BLE001 - one broken figure must not lose the report
+        return [f"{heading} {fig.title}", "", f"**figure not drawn**: {type(exc).__name__}: {exc}", "",
+                _sql_block(fig.name, fig.query), ""]
+    report.figures.append(path)
+    return [f"{heading} {fig.title}", "", f"![{fig.name}]({path.name})", "", _sql_block(fig.name, fig.query), ""]
+
+
+# ---- many runs ---------------------------------------------------------------------------------
+def find_runs(path: Path) -> list[Path]:
+    path = Path(path)
+    if (path / "summary.parquet").is_file():
+        return [path]
+    return sorted({p.parent for p in path.rglob("summary.parquet") if "cache" not in p.parts and "report" not in p.parts},
+                  key=lambda p: (len(p.parts), str(p)))
+
+
+def latest_sweep(artifacts: Path) -> Path:
+    sweeps = sorted((p for p in (Path(artifacts) / "multirun").glob("*") if p.is_dir()), key=lambda p: p.name)
+    if not sweeps:
+        raise ReportError(f"--latest: no sweep under {Path(artifacts) / 'multirun'}; run one with python -m pipeline -m ...")
+    return sweeps[-1]
+
+
+def write_reports(path: Path, out: Path | None = None) -> tuple[list[RunReport], Path | None]:
+    runs = find_runs(path)
+    if not runs:
+        raise ReportError(f"{path}: no run below it (no summary.parquet); pass a run folder or a sweep folder")
+    if len(runs) == 1 and runs[0] == Path(path):
+        return [write_run_report(runs[0], out)], None
+    reports = [write_run_report(r, None if out is None else Path(out) / r.relative_to(path)) for r in runs]
+    index = (Path(out) if out is not None else Path(path)) / "index.md"
+    lines = [f"# Reproduction reports: {path}", "", "| run | experiment | runs | targets passed | report |",
+             "|---|---|---|---|---|"]
+    for rep in reports:
+        c = rep.counts
+        total = sum(c.values())
+        verdict = f"{c['PASS']} / {total}" + (f" ({c['FAIL']} FAIL)" if c["FAIL"] else "") + \
+            (f" ({c['ERROR']} ERROR)" if c["ERROR"] else "") if total else "none declared"
+        runs_n = json.loads((rep.run_dir / "status.json").read_text()).get("runs")
+        lines.append(f"| {rep.run_dir.relative_to(path) if rep.run_dir != Path(path) else '.'} | {rep.experiment} | "
+                     f"{runs_n} | {verdict} | [{rep.path.name}]({rep.path.relative_to(index.parent)}) |")
+    index.parent.mkdir(parents=True, exist_ok=True)
+    index.write_text("\n".join(lines) + "\n")
+    return reports, index
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m pipeline.report", description=__doc__.split("\n\n")[0])
+    parser.add_argument("path", nargs="?", help="a run folder, or a sweep / artifacts folder holding runs")
+    parser.add_argument("--latest", action="store_true", help="report the newest sweep under --artifacts/multirun")
+    parser.add_argument("--artifacts", default="artifacts", help="the artifacts root for --latest (default: artifacts)")
+    parser.add_argument("--out", help="write the reports here instead of <run>/report/")
+    parser.add_argument("--check", action="store_true", help="exit 1 when any reproduction target is FAIL or ERROR")
+    args = parser.parse_args(argv)
+    try:
+        if args.latest == bool(args.path):
+            raise ReportError("give a run or sweep folder, or --latest (not both)")
+        path = latest_sweep(Path(args.artifacts)) if args.latest else Path(args.path)
+        if not path.exists():
+            raise ReportError(f"{path}: no such folder")
+        reports, index = write_reports(path, None if args.out is None else Path(args.out))
+    except ReportError as exc:
+        print(f"report: {exc}", file=sys.stderr)
+        return 2
+    failed = 0
+    for rep in reports:
+        c = rep.counts
+        print(f"{rep.experiment}: {c['PASS']}/{sum(c.values())} targets pass"
+              + (f", {c['FAIL']} FAIL" if c["FAIL"] else "") + (f", {c['ERROR']} ERROR" if c["ERROR"] else "")
+              + f", {len(rep.figures)} figures -> {rep.path}")
+        for t in rep.targets:
+            if t.verdict != "PASS":
+                print(f"  {t.verdict} {t.spec.id}: {t.measured}")
+        failed += c["FAIL"] + c["ERROR"]
+    if index is not None:
+        print(f"index: {index}")
+    return 1 if args.check and failed else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
