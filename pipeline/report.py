@@ -14,11 +14,12 @@ made from the stored tables alone:
 Experiments declare their part in their YAML under ``report`` (next to ``report.tables``):
 
 ``report.queries``  name -> SQL over this run's tables ``summary`` and ``metrics`` (the Parquet
-    files; NaN read as NULL so AVG skips it);
+    files; NaN read as NULL so AVG skips it) and ``wide`` (the summary pivoted: one row per window,
+    '-' for window-free values, one column per "<variant_key>:<metric>");
 ``report.figures``  name -> {title, query (a query name or SQL), x, y, series, lower, upper, kind
     (line | step | bar), xlabel, ylabel, logy, reference: [{label, x: [...], y: [...]}]}: one line
     per value of ``series`` (the paper's points drawn as markers from ``reference``);
-``report.targets``  list of {id, target, paper, query}: the query returns one row with a text column
+``report.targets``  id -> {target, paper, query}: the query returns one row with a text column
     ``measured`` and a boolean ``pass``.
 
 A sweep folder (``multirun/<time>``, or any folder holding runs below it) gets one report per run and
@@ -143,16 +144,18 @@ class ReportSpec:
                                       str(fig["x"]), str(fig["y"]), _opt(fig.get("series")), _opt(fig.get("lower")),
                                       _opt(fig.get("upper")), kind, str(fig.get("xlabel", fig["x"])),
                                       str(fig.get("ylabel", fig["y"])), bool(fig.get("logy", False)), reference))
-        targets, seen = [], set()
-        for i, target in enumerate(node.get("targets") or ()):
+        targets = []
+        raw = node.get("targets") or {}
+        if not isinstance(raw, Mapping):
+            raise ReportError(f"report.targets: must map an id to {{target, paper, query}} (a mapping, so an "
+                              f"experiment that extends another adds targets to it); got {type(raw).__name__}")
+        for key, target in raw.items():
             target = dict(target or {})
-            if set(target) != TARGET_KEYS:
-                raise ReportError(f"report.targets[{i}]: keys {sorted(target)} must be exactly {sorted(TARGET_KEYS)}")
-            if target["id"] in seen:
-                raise ReportError(f"report.targets[{i}].id: {target['id']!r} is used twice")
-            seen.add(target["id"])
-            targets.append(TargetSpec(str(target["id"]), str(target["target"]).strip(), str(target["paper"]).strip(),
-                                      _resolve(target["query"], queries, f"targets[{i}]")))
+            if set(target) != TARGET_KEYS - {"id"}:
+                raise ReportError(f"report.targets.{key}: keys {sorted(target)} must be exactly "
+                                  f"{sorted(TARGET_KEYS - {'id'})}")
+            targets.append(TargetSpec(str(key), str(target["target"]).strip(), str(target["paper"]).strip(),
+                                      _resolve(target["query"], queries, f"targets.{key}")))
         return cls(queries, tuple(figures), tuple(targets))
 
 
@@ -183,8 +186,18 @@ class RunTables:
     summary: pl.DataFrame
     metrics: pl.DataFrame
 
+    @property
+    def wide(self) -> pl.DataFrame:
+        """The summary one row per window ('-' for window-free values such as compute_seconds), one
+        column per "<variant_key>:<metric>": targets compare variants without self-joins."""
+        if self.summary.height == 0:
+            return pl.DataFrame({"window": []}, schema={"window": pl.String})
+        return (self.summary.with_columns(pl.col("window").fill_null("-"),
+                              (pl.col("variant_key") + ":" + pl.col("metric")).alias("column"))
+                .pivot(on="column", index="window", values="value", aggregate_function="first"))
+
     def query(self, sql: str) -> pl.DataFrame:
-        context = pl.SQLContext(summary=self.summary, metrics=self.metrics, eager=True)
+        context = pl.SQLContext(summary=self.summary, metrics=self.metrics, wide=self.wide, eager=True)
         return context.execute(sql)
 
 

@@ -107,6 +107,12 @@ def build_report_tables(cfg: DictConfig) -> dict[str, Any]:
     nodes = report.get("tables") if isinstance(report, DictConfig) else None
     if report is not None and not isinstance(report, DictConfig):
         raise ConfigError(f"report: {report!r} must be a mapping with a 'tables' mapping (name -> table node).")
+    if report is not None:
+        from pipeline.report import ReportError, ReportSpec
+        try:      # the reproduction report's queries, figures and targets: checked now, used by pipeline.report
+            ReportSpec.from_config(OmegaConf.to_container(report, resolve=True))
+        except ReportError as exc:
+            raise ConfigError(str(exc)) from None
     if not nodes:
         return {}
     if not isinstance(nodes, DictConfig):
