@@ -1,0 +1,117 @@
+"""The reproduction report (python -m pipeline.report): built from a small run's stored tables,
+with every declared target's measured value and verdict, the figures, the limits section; a sweep
+gets an index; a bad report definition is refused before any stage."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from pipeline.errors import ConfigError
+from pipeline.report import ReportError, ReportSpec, TargetSpec, evaluate_target, load_run, main, write_reports
+from tests.test_pipeline import ROOT, run_in_process
+
+SMALL = ("mc.runs=3", "scenario.steps=60")
+
+
+@pytest.fixture(scope="module")
+def small_run(tmp_path_factory):
+    root = tmp_path_factory.mktemp("report")
+    _, ctx = run_in_process(root, "s2", "experiment=ao_vsimm_s2_ratios", *SMALL)
+    return ctx.run_dir
+
+
+def test_the_report_shows_every_target_with_its_measured_value_and_the_figures(small_run, tmp_path):
+    (report,), index = write_reports(small_run, tmp_path / "out")
+    assert index is None and report.path == tmp_path / "out" / "report.md"
+    text = report.path.read_text()
+    spec = ReportSpec.from_config(load_run(small_run).config["report"])
+    ids = {t.id for t in spec.targets}
+    assert ids == {"models_per_step", "s2_vsimm_fails", "s2_m3_not_reached", "s2_ao_vsimm_close", "s2_new_old_close"}
+    assert {t.spec.id for t in report.targets} == ids
+    for target in report.targets:
+        assert target.verdict in ("PASS", "FAIL"), (target.spec.id, target.measured)   # no query error
+        row = next(line for line in text.splitlines() if line.startswith(f"| {target.spec.id} |"))
+        assert target.measured in row and target.verdict in row
+    # the declared figures and the limits figures, each a PNG beside the report and linked from it
+    names = {p.name for p in report.figures}
+    assert {"acceleration_rmse_x.png", "acceleration_rmse_y.png", "models_per_step.png", "limit_nees.png",
+            "limit_nis.png", "limit_rmse_over_bound.png"} <= names
+    for path in report.figures:
+        assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and f"]({path.name})" in text
+    assert "## How far from the limit" in text and "share_in_band" in text and "| FSIMM | nis |" in text
+    assert "query <code>s2_vsimm_fails</code>" in text                     # each number's query is shown
+
+
+def test_a_query_that_fails_or_returns_no_row_is_an_error_not_a_pass(small_run):
+    tables = load_run(small_run)
+    broken = evaluate_target(tables, TargetSpec("x", "t", "p", "SELECT nothing FROM nowhere"))
+    empty = evaluate_target(tables, TargetSpec("y", "t", "p", "SELECT 'a' AS measured, true AS pass FROM wide WHERE 1 = 0"))
+    assert broken.verdict == "ERROR" and "query failed" in broken.measured
+    assert empty.verdict == "ERROR" and "0 row(s)" in empty.measured
+
+
+def test_a_sweep_gets_one_report_per_run_and_an_index(tmp_path):
+    sweep = tmp_path / "multirun" / "2026-01-01"          # the layout of a Hydra sweep: <sweep>/<job_num>/
+    sweep.mkdir(parents=True)
+    for job, overrides in (("0", ["experiment=ao_vsimm_s1", "scenario.steps=40"]), ("1", ["experiment=mie_los"])):
+        run_in_process(tmp_path, job, "mc.runs=2", *overrides)
+        (tmp_path / "runs" / job).rename(sweep / job)
+    assert main([str(sweep)]) == 0
+    index = (sweep / "index.md").read_text()
+    assert "ao_vsimm_s1" in index and "mie_los" in index and "(0/report/report.md)" in index
+    assert (sweep / "1" / "report" / "report.md").read_text().count("| detection_peaks |") == 1
+    assert main(["--latest", "--artifacts", str(tmp_path)]) == 0
+
+
+def test_check_fails_the_command_when_a_target_fails(small_run, tmp_path):
+    """--check: exit 1 when any target is FAIL or ERROR (at 3 runs of 60 steps some S2 targets fail)."""
+    proc = subprocess.run([sys.executable, "-m", "pipeline.report", str(small_run), "--out", str(tmp_path), "--check"],
+                          cwd=ROOT, capture_output=True, text=True, timeout=120)
+    results = load_run(small_run)
+    verdicts = [evaluate_target(results, t).verdict for t in ReportSpec.from_config(results.config["report"]).targets]
+    assert proc.returncode == (1 if set(verdicts) - {"PASS"} else 0), proc.stdout + proc.stderr
+    assert "targets pass" in proc.stdout
+
+
+def test_a_missing_folder_or_an_unfinished_run_is_a_clear_error(tmp_path, capsys):
+    assert main([str(tmp_path / "nowhere")]) == 2
+    assert "no such folder" in capsys.readouterr().err
+    (tmp_path / "run").mkdir()
+    (tmp_path / "run" / "summary.parquet").write_bytes(b"")
+    assert main([str(tmp_path / "run")]) == 2
+    assert "not a finished run folder" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("override, message", [
+    ("+report.targets.bad={target: t, paper: p}", "report.targets.bad: keys"),
+    ("+report.figures.bad={query: acceleration_rmse_by_step, x: time}", "report.figures.bad: missing ['y']"),
+    ("+report.figures.bad={query: 'not sql', x: a, y: b}", "neither SQL nor a name"),
+    ("+report.figures.bad={query: acceleration_rmse_by_step, x: time, y: value, kind: pie}", "kind: 'pie'"),
+])
+def test_a_bad_report_definition_is_refused_before_any_stage(tmp_path, override, message):
+    with pytest.raises(ConfigError, match=message.replace("[", r"\[").replace("]", r"\]")):
+        run_in_process(tmp_path, "bad", "experiment=ao_vsimm_s1", "mc.runs=2", override)
+    assert not (tmp_path / "runs" / "bad" / "summary.parquet").exists()
+
+
+def test_report_spec_rejects_a_target_list():
+    with pytest.raises(ReportError, match="must map an id"):
+        ReportSpec.from_config({"targets": [{"target": "t", "paper": "p", "query": "SELECT 1"}]})
+
+
+def test_every_experiment_declares_targets_that_parse():
+    from hydra import compose, initialize_config_dir
+    from omegaconf import OmegaConf
+
+    from tests.conftest import CONF
+    experiments = sorted(p.stem for p in (Path(CONF) / "experiment").glob("*.yaml"))
+    with initialize_config_dir(version_base="1.3", config_dir=str(CONF)):
+        for name in experiments:
+            cfg = compose("config", overrides=[f"experiment={name}"])
+            spec = ReportSpec.from_config(OmegaConf.to_container(cfg.report, resolve=True))
+            assert spec.targets, f"{name} declares no reproduction targets"
+            assert int(cfg.paper_runs) >= 50, name
