@@ -239,8 +239,10 @@ def evaluate_target(tables: RunTables, spec: TargetSpec) -> TargetResult:
         return TargetResult(spec, f"query returned {df.height} row(s) with columns {df.columns}; expected one row "
                                   f"with 'measured' and 'pass'", "ERROR")
     row = df.row(0, named=True)
-    verdict = "ERROR" if row["pass"] is None else ("PASS" if bool(row["pass"]) else "FAIL")
-    return TargetResult(spec, str(row["measured"]), verdict)
+    if row["measured"] is None or row["pass"] is None:
+        return TargetResult(spec, "no value: an input of the query is NULL (an empty window, a variant or "
+                                  "metric this run does not have)", "ERROR")
+    return TargetResult(spec, str(row["measured"]), "PASS" if bool(row["pass"]) else "FAIL")
 
 
 def draw_figure(df: pl.DataFrame, spec: FigureSpec, path: Path) -> None:
