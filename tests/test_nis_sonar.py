@@ -253,3 +253,7 @@ def test_sonar_case1_recording_shows_nis_and_nees_with_their_bands(case1_run):
                 origins[origin[0]] = name[0]
     assert origins["/metrics/nis"].startswith("NIS") and "95 % band" in origins["/metrics/nis"]
     assert origins["/metrics/nees"].startswith("NEES") and "95 % band" in origins["/metrics/nees"]
+    # and the RMSE over the PCRLB of every variant, with its view
+    for key in variants:
+        temporal(entities, f"/metrics/position_rmse_over_bound/{key}", "Scalars:scalars")
+    assert "PCRLB" in origins["/metrics/position_rmse_over_bound"]
