@@ -272,8 +272,8 @@ def draw_figure(df: pl.DataFrame, spec: FigureSpec, path: Path) -> None:
         if spec.lower and spec.upper:
             ax.fill_between(x, part[spec.lower].to_numpy().astype(float), part[spec.upper].to_numpy().astype(float),
                             color=line.get_color(), alpha=0.12, linewidth=0)
-    for ref in spec.reference:
-        ax.plot(list(ref["x"]), list(ref["y"]), linestyle="none", marker="o", markersize=5, markerfacecolor="none",
+    for ref, marker in zip(spec.reference, "osD^vPX*" * 4):      # one hollow marker shape per reference
+        ax.plot(list(ref["x"]), list(ref["y"]), linestyle="none", marker=marker, markersize=6, markerfacecolor="none",
                 color="black", label=str(ref["label"]))
     ax.set_title(spec.title, fontsize=10)
     ax.set_xlabel(spec.xlabel)
