@@ -52,6 +52,22 @@ def test_each_injected_fault_is_flagged_at_its_run_and_step_only(fault):
     assert summary["diverged_runs"] == 1 and summary[f"fault_runs_{expected}"] == 1
 
 
+def test_a_reduced_state_is_not_a_fault_but_a_nan_inside_it_is():
+    """Components a filter does not estimate at a step (NaN in the state and in their covariance rows
+    and columns, the rest finite: study 003's KF + MGEKF while active) are not flagged; a NaN that
+    reaches the estimated block is."""
+    state = np.zeros((1, 3, 6))
+    covariance = np.broadcast_to(np.eye(6), (1, 3, 6, 6)).copy()
+    state[0, 1, 4:] = np.nan                                          # step 1: no acceleration estimate
+    covariance[0, 1, 4:, :] = covariance[0, 1, :, 4:] = np.nan
+    state[0, 2, 4:] = np.nan                                          # step 2: the same, and a NaN in the block
+    covariance[0, 2, 4:, :] = covariance[0, 2, :, 4:] = np.nan
+    covariance[0, 2, 0, 1] = np.nan
+    flags = fault_flags(state, covariance, FaultChecks(nees_bound=100.0), np.ones((1, 3, 6)))
+    assert flags[0, 0] == 0 and flags[0, 1] == 0
+    assert describe(int(flags[0, 2])) == ["nonfinite"]
+
+
 def test_per_target_flags_reduce_to_the_step():
     x, P = healthy(R=2, K=3, n=2)
     x = np.repeat(x[:, :, None], 3, axis=2)
