@@ -24,7 +24,9 @@ Experiments declare their part in their YAML under ``report`` (next to ``report.
 
 A sweep folder (``multirun/<time>``, or any folder holding runs below it) gets one report per run and
 an ``index.md`` with each run's targets passed. ``--check`` exits 1 when any target is FAIL or
-ERROR. Reports go to ``<run>/report/`` unless ``--out`` is given.
+ERROR. Reports go to ``<run>/report/`` unless ``--out`` is given. The targets and figures are the
+ones the run recorded in its config.yaml; ``--current`` checks a stored run against the
+definitions conf/ holds now (e.g. a target added after the run).
 """
 
 from __future__ import annotations
@@ -344,9 +346,21 @@ def _sql_block(name: str, sql: str) -> str:
     return f"<details><summary>query <code>{name}</code></summary>\n\n```sql\n{sql.strip()}\n```\n</details>\n"
 
 
-def write_run_report(run_dir: Path, out_dir: Path | None = None) -> RunReport:
+def current_definition(experiment: str) -> Mapping[str, Any]:
+    """The ``report`` node of ``experiment`` as conf/ defines it now (to re-check stored runs
+    against targets written after them; the run's tables are not touched)."""
+    from hydra import compose, initialize_config_dir
+    from omegaconf import OmegaConf
+
+    conf = Path(__file__).resolve().parent.parent / "conf"
+    with initialize_config_dir(version_base="1.3", config_dir=str(conf)):
+        cfg = compose("config", overrides=[f"experiment={experiment}"])
+    return OmegaConf.to_container(cfg.get("report") or {}, resolve=True)
+
+
+def write_run_report(run_dir: Path, out_dir: Path | None = None, current: bool = False) -> RunReport:
     tables = load_run(run_dir)
-    spec = ReportSpec.from_config(tables.config.get("report"))
+    spec = ReportSpec.from_config(current_definition(tables.experiment) if current else tables.config.get("report"))
     out_dir = Path(out_dir) if out_dir is not None else tables.run_dir / "report"
     out_dir.mkdir(parents=True, exist_ok=True)
     report = RunReport(tables.run_dir, out_dir / "report.md", tables.experiment)
@@ -446,13 +460,13 @@ def latest_sweep(artifacts: Path) -> Path:
     return sweeps[-1]
 
 
-def write_reports(path: Path, out: Path | None = None) -> tuple[list[RunReport], Path | None]:
+def write_reports(path: Path, out: Path | None = None, current: bool = False) -> tuple[list[RunReport], Path | None]:
     runs = find_runs(path)
     if not runs:
         raise ReportError(f"{path}: no run below it (no summary.parquet); pass a run folder or a sweep folder")
     if len(runs) == 1 and runs[0] == Path(path):
-        return [write_run_report(runs[0], out)], None
-    reports = [write_run_report(r, None if out is None else Path(out) / r.relative_to(path)) for r in runs]
+        return [write_run_report(runs[0], out, current)], None
+    reports = [write_run_report(r, None if out is None else Path(out) / r.relative_to(path), current) for r in runs]
     index = (Path(out) if out is not None else Path(path)) / "index.md"
     lines = [f"# Reproduction reports: {path}", "", "| run | experiment | runs | targets passed | report |",
              "|---|---|---|---|---|"]
@@ -476,6 +490,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--artifacts", default="artifacts", help="the artifacts root for --latest (default: artifacts)")
     parser.add_argument("--out", help="write the reports here instead of <run>/report/")
     parser.add_argument("--check", action="store_true", help="exit 1 when any reproduction target is FAIL or ERROR")
+    parser.add_argument("--current", action="store_true",
+                        help="check the targets and figures as conf/ defines them now, not as the run recorded them")
     args = parser.parse_args(argv)
     try:
         if args.latest == bool(args.path):
@@ -483,7 +499,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         path = latest_sweep(Path(args.artifacts)) if args.latest else Path(args.path)
         if not path.exists():
             raise ReportError(f"{path}: no such folder")
-        reports, index = write_reports(path, None if args.out is None else Path(args.out))
+        reports, index = write_reports(path, None if args.out is None else Path(args.out), args.current)
     except ReportError as exc:
         print(f"report: {exc}", file=sys.stderr)
         return 2

@@ -115,3 +115,12 @@ def test_every_experiment_declares_targets_that_parse():
             spec = ReportSpec.from_config(OmegaConf.to_container(cfg.report, resolve=True))
             assert spec.targets, f"{name} declares no reproduction targets"
             assert int(cfg.paper_runs) >= 50, name
+
+
+def test_current_rechecks_a_stored_run_against_the_definitions_in_conf(small_run, tmp_path):
+    """--current: the run's tables, today's report definition (here the same: the same targets)."""
+    from pipeline.report import write_run_report
+    recorded = write_run_report(small_run, tmp_path / "recorded")
+    current = write_run_report(small_run, tmp_path / "current", current=True)
+    assert [(t.spec.id, t.measured, t.verdict) for t in current.targets] == \
+        [(t.spec.id, t.measured, t.verdict) for t in recorded.targets]
