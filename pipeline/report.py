@@ -449,8 +449,10 @@ def find_runs(path: Path) -> list[Path]:
     path = Path(path)
     if (path / "summary.parquet").is_file():
         return [path]
+    def natural(p: Path) -> tuple:                # sweep jobs in their number order: 2 before 10
+        return (len(p.parts),) + tuple((0, int(part), "") if part.isdigit() else (1, 0, part) for part in p.parts)
     return sorted({p.parent for p in path.rglob("summary.parquet") if "cache" not in p.parts and "report" not in p.parts},
-                  key=lambda p: (len(p.parts), str(p)))
+                  key=natural)
 
 
 def latest_sweep(artifacts: Path) -> Path:
