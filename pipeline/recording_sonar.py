@@ -66,12 +66,13 @@ MODE_LABELS = {ACTIVE: "active (bearing + range)", PASSIVE: "passive (bearing on
 ELLIPSE_STRIDE = 10               # covariance ellipses every 10th step (+ at each mode switch)
 BEARING_LINE_SCALE = 1.2          # a passive bearing line is 1.2 x the true range long
 TIME_SERIES_METRICS = ("position_rmse", "position_rmse_x", "position_rmse_y", "velocity_rmse", "nees", "nis",
-                       "position_rmse_over_bound")
+                       "position_rmse_over_bound", "position_rmse_over_bound_model")
 # Titles of the consistency views: each variant's run average with its 95 % band (thin, lighter)
 _VIEW_TITLES = {
     "nees": "NEES, run average (χ² 6 dof; NaN while KF + MGEKF runs its 4-state KF); thin: 95 % band",
     "nis": "NIS, run average (χ² 2 dof active, 1 dof passive); thin: 95 % band",
     "position_rmse_over_bound": "position RMSE / sqrt(clairvoyant PCRLB)",
+    "position_rmse_over_bound_model": "position RMSE / sqrt(PCRLB of the trackers' Singer model)",
 }
 _OWNSHIP_COLOUR = (255, 215, 0)
 _BEARING_COLOUR = (150, 150, 150, 150)

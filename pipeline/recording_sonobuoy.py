@@ -500,8 +500,11 @@ def _sonobuoy_blueprint(rrb, record_runs: list[int], variant_keys: list[str], di
         tabs.append(rrb.TimeSeriesView(origin="/metrics/nis", axis_x=whole_run, plot_legend=legend,
                                        name="NIS of the received bearings (mean of the runs; thin: χ² 95 % band)"))
     if "position_rmse_over_bound" in present:
-        tabs.append(rrb.TimeSeriesView(origin="/metrics/position_rmse_over_bound", axis_x=whole_run,
-                                       plot_legend=legend, name="position RMSE / sqrt(PCRLB) (clairvoyant, clutter ignored)"))
+        tabs.append(rrb.TimeSeriesView(origin="/metrics", contents=["/metrics/position_rmse_over_bound/**",
+                                                                    "/metrics/position_rmse_over_bound_model/**"],
+                                       axis_x=whole_run, plot_legend=legend,
+                                       name="position RMSE / sqrt(PCRLB): clairvoyant, and with the filters' noise "
+                                            "(clutter ignored)"))
         tabs.append(rrb.TimeSeriesView(origin="/metrics", contents=["/metrics/position_rmse/**",
                                                                     "/metrics/position_bound/**",
                                                                     "/metrics/position_bound_model/**"],

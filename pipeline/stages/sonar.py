@@ -27,7 +27,8 @@ from pipeline.stages.evaluate import _quiet_nanmean, per_step_metrics
 
 UNITS = {"position_bound": "m (sqrt trace of the clairvoyant PCRLB position block)",
          "position_bound_model": "m (sqrt trace of the PCRLB of the trackers' Singer model)",
-         "position_rmse_over_bound": "ratio (position RMSE / PCRLB)", "position_rmse_x": "m", "position_rmse_y": "m", "rmse_x": "m", "rmse_y": "m", "median_run_rmse_x": "m",
+         "position_rmse_over_bound": "ratio (position RMSE / PCRLB)",
+         "position_rmse_over_bound_model": "ratio (position RMSE / PCRLB of the trackers' Singer model)", "position_rmse_x": "m", "position_rmse_y": "m", "rmse_x": "m", "rmse_y": "m", "median_run_rmse_x": "m",
          "median_run_rmse_y": "m", "paired_ratio_x": "ratio to the reference variant, median over runs",
          "paired_ratio_y": "ratio to the reference variant, median over runs", "peak_position_rmse": "m"}
 
@@ -93,6 +94,7 @@ class SonarStudy:
                 out["position_bound"] = bound
                 out["position_rmse_over_bound"] = out["position_rmse"] / bound
                 out["position_bound_model"] = self.position_bound(truth, sensor, "model")
+                out["position_rmse_over_bound_model"] = out["position_rmse"] / out["position_bound_model"]
         return out
 
     def position_bound(self, truth: Truth, sensor, model: str = "clairvoyant") -> np.ndarray:

@@ -38,6 +38,7 @@ UNITS = {"position_rmse": "m", "position_median_error": "m", "buoy_position_rmse
          "position_bound": "m (sqrt trace of the clairvoyant PCRLB target position block, clutter ignored)",
          "position_bound_model": "m (the same with the filters' target process noise)",
          "position_rmse_over_bound": "ratio (position RMSE / sqrt(PCRLB))",
+         "position_rmse_over_bound_model": "ratio (position RMSE / sqrt(PCRLB) with the filters' target noise)",
          "track_loss_rate": "fraction of runs", "final_position_rmse": "m", "peak_median_error": "m"}
 MODE_NAMES = ("cv", "ccw", "cw")
 
@@ -152,6 +153,8 @@ class SonobuoyStudy:
                 out["position_rmse_over_bound"] = out["position_rmse"] / bound
             if self.bound_model_target_sigma is not None:
                 out["position_bound_model"] = self.position_bound(truth, sensor, self.bound_model_target_sigma)
+                with np.errstate(invalid="ignore", divide="ignore"):
+                    out["position_rmse_over_bound_model"] = out["position_rmse"] / out["position_bound_model"]
         return out
 
     def position_bound(self, truth: Truth, sensor, target_sigma: float) -> np.ndarray:
