@@ -410,7 +410,7 @@ class MultipleModelParticleFilter(_ModelParameters):
 class SonobuoyModel:
     """Seed 004's jump-Markov model for ``filter_jump_markov``: 20 states, 3 target modes (CV,
     Omega > 0, Omega < 0), process noise (target 2 + 4 buoys x 2 accelerations) through Gamma, the
-    8-bearing likelihood. The likelihoods run in float32 (see ``_target_log_likelihood``)."""
+    8-bearing likelihood. The likelihoods run in float32 (see ``_target_bearings``)."""
 
     modes = 3
     state_size = 20
@@ -455,21 +455,29 @@ class SonobuoyModel:
         X_new[..., 4:] = (buoys_next + increments[..., 1:, :]).reshape(R, N, 16)
         return X_new
 
-    def innovation_nis(self, X: np.ndarray, log_weights: np.ndarray, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def predicted_measurements(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The particles' (R, N, 20) bearings, float32: target from each buoy (R, N, 4) and each buoy
+        from the observer (R, N, 4); computed once per scan for the likelihood and the NIS."""
+        R, N = X.shape[:2]
+        buoys = X[..., 4:].reshape(R, N, BUOYS, 4)[..., :2]
+        return _target_bearings(X[..., :2], buoys), _buoy_bearings(buoys, self.observer)
+
+    def innovation_nis(self, predicted: tuple[np.ndarray, np.ndarray], log_weights: np.ndarray, z: np.ndarray
+                       ) -> tuple[np.ndarray, np.ndarray]:
         """(R,) NIS of scan k's received bearings against the predicted cloud, and its dof (R,).
 
-        ``X`` (R, N, 20) the propagated particles and ``log_weights`` their weights as a sample of the
-        prediction p(x_k | z_1..k-1). The predicted bearings' mean and covariance are the cloud's
-        (exact moments, no linearisation), plus the measurement noise; clutter is taken as noise
-        of the mixture's variance (1 - p_c) s^2 + p_c s_c^2 (measurement-origin uncertainty
-        ignored), so the mean NIS of a consistent filter is the dof while the chi-square band is only
-        approximate in clutter (the mixture's tails are heavier).
+        ``predicted`` the propagated particles' bearings (``predicted_measurements``) and
+        ``log_weights`` (R, N) their weights as a sample of the prediction p(x_k | z_1..k-1). The
+        predicted bearings' mean and covariance are the cloud's (exact moments, no linearisation),
+        plus the measurement noise; clutter is taken as noise of the mixture's variance
+        (1 - p_c) s^2 + p_c s_c^2 (measurement-origin uncertainty ignored), so the mean NIS of a
+        consistent filter is the dof while the chi-square band is only approximate in clutter (the
+        mixture's tails are heavier).
         """
-        # float32 as the likelihoods (see _target_log_likelihood): ~1e-7 rad against degrees of noise
         weights = normalise_log(log_weights).astype(np.float32)
-        predicted = bearings(X.astype(np.float32), self.observer.astype(np.float32))       # (R, N, 8)
-        reference = predicted[:, :1]
-        deviation = wrap(predicted - reference)
+        bearing = np.concatenate(predicted, axis=-1)                                      # (R, N, 8)
+        reference = bearing[:, :1]
+        deviation = wrap(bearing - reference)
         mean = (weights[:, None, :] @ deviation)[:, 0]                                   # (R, 8)
         centred = deviation - mean[:, None, :]
         S = (np.swapaxes(centred * weights[..., None], -1, -2) @ centred).astype(np.float64)
@@ -477,11 +485,12 @@ class SonobuoyModel:
         S = S + np.diag(np.concatenate([self.target_part.variance, self.buoy_part.variance]))
         return _masked_nis(wrap(z - reference[:, 0] - mean), S)
 
-    def log_likelihood(self, X: np.ndarray, z: np.ndarray) -> np.ndarray:
-        R, N = X.shape[:2]
-        buoys = X[..., 4:].reshape(R, N, BUOYS, 4)[..., :2]
-        return (_target_log_likelihood(X[..., :2], buoys, z, self.target_part)
-                + _buoy_log_likelihood(buoys, z, self.observer, self.buoy_part))
+    def log_likelihood(self, X: np.ndarray, z: np.ndarray,
+                       predicted: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+        """(R, N) log p(z | X); ``predicted``: X's bearings when already computed."""
+        target, buoy = self.predicted_measurements(X) if predicted is None else predicted
+        return (_bearings_log_likelihood(target, z[:, 0:4], self.target_part)
+                + _bearings_log_likelihood(buoy, z[:, 4:8], self.buoy_part))
 
 
 def mode_bearings(target_mean: np.ndarray, buoy_xy: np.ndarray) -> np.ndarray:
@@ -499,24 +508,30 @@ def mode_bearings(target_mean: np.ndarray, buoy_xy: np.ndarray) -> np.ndarray:
     return np.concatenate([base[..., None, :], base[..., None, :] + change], axis=-2)
 
 
-def _target_log_likelihood(target_xy: np.ndarray, buoy_xy: np.ndarray, z: np.ndarray,
-                           part: BearingLikelihood) -> np.ndarray:
-    """Sum over the 4 target bearings; target_xy (..., 2), buoy_xy (..., 4, 2), z (R, 8).
+def _target_bearings(target_xy: np.ndarray, buoy_xy: np.ndarray) -> np.ndarray:
+    """float32 bearings (..., 4) of the target (..., 2) from the buoys (..., 4, 2).
 
     In float32: bearings of differences of ~10 km positions keep ~1e-7 rad, far below the
     1.5-15 deg noise, and numpy's float32 atan2/exp/log run about twice as fast."""
     d = target_xy.astype(np.float32)[..., None, :] - buoy_xy.astype(np.float32)
-    predicted = np.arctan2(d[..., 0], d[..., 1])                                        # (..., 4)
-    zz = z[:, 0:4].astype(np.float32).reshape((z.shape[0],) + (1,) * (predicted.ndim - 2) + (4,))
+    return np.arctan2(d[..., 0], d[..., 1])
+
+
+def _buoy_bearings(buoy_xy: np.ndarray, observer: np.ndarray) -> np.ndarray:
+    """float32 bearings (..., 4) of the buoys (..., 4, 2) from the observer."""
+    d = buoy_xy.astype(np.float32) - observer.astype(np.float32)
+    return np.arctan2(d[..., 0], d[..., 1])
+
+
+def _bearings_log_likelihood(predicted: np.ndarray, z: np.ndarray, part: BearingLikelihood) -> np.ndarray:
+    """Sum over 4 components of log p(z | predicted); predicted (R, ..., 4) float32, z (R, 4)."""
+    zz = z.astype(np.float32).reshape((z.shape[0],) + (1,) * (predicted.ndim - 2) + (4,))
     return part.log(predicted, zz).sum(axis=-1, dtype=np.float64)
 
 
 def _buoy_log_likelihood(buoy_xy: np.ndarray, z: np.ndarray, observer: np.ndarray,
                          part: BearingLikelihood) -> np.ndarray:
-    d = buoy_xy.astype(np.float32) - observer.astype(np.float32)
-    predicted = np.arctan2(d[..., 0], d[..., 1])                                        # (R, N, 4)
-    zz = z[:, 4:8].astype(np.float32).reshape((z.shape[0],) + (1,) * (predicted.ndim - 2) + (4,))
-    return part.log(predicted, zz).sum(axis=-1, dtype=np.float64)
+    return _bearings_log_likelihood(_buoy_bearings(buoy_xy, observer), z[:, 4:8], part)
 
 
 def filter_jump_markov(model, tpm: np.ndarray, time: np.ndarray, z: np.ndarray, prior_mean: np.ndarray,
@@ -525,7 +540,9 @@ def filter_jump_markov(model, tpm: np.ndarray, time: np.ndarray, z: np.ndarray, 
     """The multiple-model particle filter over scans 1..K-1, batched over runs (R) and particles.
 
     ``model`` supplies ``modes``, ``state_size``, ``noise_shape``, ``first_stage(X, z, dt)``,
-    ``propagate(X, parent, mode, noise, dt, context)`` and ``log_likelihood(X, z)``; ``gens`` one
+    ``propagate(X, parent, mode, noise, dt, context)`` and ``log_likelihood(X, z)`` (and for the NIS
+    ``predicted_measurements(X)``, ``innovation_nis(predicted, log_weights, z)`` and
+    ``log_likelihood(X, z, predicted)``); ``gens`` one
     random generator per run. Auxiliary (AMMPF, seed eqs 15-17): first-stage weights over every
     (particle, mode) pair, joint systematic resampling of (parent, mode), propagation, second-stage
     weights p(z|x)/p(z|mu). Otherwise the bootstrap SIR-MM (mode from the transition matrix).
@@ -575,9 +592,13 @@ def filter_jump_markov(model, tpm: np.ndarray, time: np.ndarray, z: np.ndarray, 
         noise = _stack(gens, lambda g: g.standard_normal((N,) + tuple(model.noise_shape), dtype=np.float32))
         X_new = model.propagate(X, parent, new_mode, noise, dt, context)              # eq 15
         # the propagated cloud reweighted by 1 / p(z | mu) (auxiliary) is a sample of the prediction
-        if hasattr(model, "innovation_nis"):
-            nis[:, k], nis_dof[:, k] = model.innovation_nis(X_new, np.broadcast_to(-first_at_pick, (R, N)), zk)
-        log_weights, lost = _restart_if_underflowed(model.log_likelihood(X_new, zk) - first_at_pick)
+        if hasattr(model, "innovation_nis"):          # the bearings serve the NIS and the likelihood
+            predicted = model.predicted_measurements(X_new)
+            nis[:, k], nis_dof[:, k] = model.innovation_nis(predicted, np.broadcast_to(-first_at_pick, (R, N)), zk)
+            log_likelihood = model.log_likelihood(X_new, zk, predicted)
+        else:
+            log_likelihood = model.log_likelihood(X_new, zk)
+        log_weights, lost = _restart_if_underflowed(log_likelihood - first_at_pick)
         underflow[:, k] |= lost
         weights = normalise_log(log_weights)                                           # eq 17
         states[:, k], covariances[:, k] = weighted_moments(X_new, weights)

@@ -125,8 +125,8 @@ def test_a_particle_filter_whose_weights_all_underflow_restarts_them_and_flags_t
     original = particle.SonobuoyModel.log_likelihood
     calls = []
 
-    def underflowing(self, X, z):                       # run 1's likelihood is 0 for every particle at scan 4
-        out = original(self, X, z)
+    def underflowing(self, X, z, *predicted):           # run 1's likelihood is 0 for every particle at scan 4
+        out = original(self, X, z, *predicted)
         calls.append(None)
         if len(calls) == 4:
             out = out.copy()

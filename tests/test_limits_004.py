@@ -34,7 +34,7 @@ def test_particle_nis_of_a_point_cloud_is_the_residual_over_the_noise_variance()
                           np.array([0.0, -8000.0]))
     offset = np.array([0.05, -0.1, 0.0, 0.2, 0.01, 0.0, np.nan, -0.03])
     z = bearings(state, np.array([0.0, -8000.0]))[None] + offset
-    nis, dof = model.innovation_nis(X, np.zeros((1, 50)), z)
+    nis, dof = model.innovation_nis(model.predicted_measurements(X), np.zeros((1, 50)), z)
     variance = (1 - pc) * 0.1**2 + pc * 0.3**2
     np.testing.assert_allclose(nis, [np.nansum(offset**2) / variance], rtol=1e-5)
     assert dof[0] == 7
