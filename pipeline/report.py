@@ -43,7 +43,7 @@ import polars as pl
 
 FIGURE_KEYS = {"title", "query", "x", "y", "series", "lower", "upper", "kind", "xlabel", "ylabel", "logy",
                "reference"}
-TARGET_KEYS = {"id", "target", "paper", "query"}
+TARGET_KEYS = {"target", "paper", "query"}
 KINDS = ("line", "step", "bar")
 
 # Built-in named queries: the limits section of every report. ``{metric}`` is filled per figure.
@@ -155,9 +155,8 @@ class ReportSpec:
                               f"experiment that extends another adds targets to it); got {type(raw).__name__}")
         for key, target in raw.items():
             target = dict(target or {})
-            if set(target) != TARGET_KEYS - {"id"}:
-                raise ReportError(f"report.targets.{key}: keys {sorted(target)} must be exactly "
-                                  f"{sorted(TARGET_KEYS - {'id'})}")
+            if set(target) != TARGET_KEYS:
+                raise ReportError(f"report.targets.{key}: keys {sorted(target)} must be exactly {sorted(TARGET_KEYS)}")
             targets.append(TargetSpec(str(key), str(target["target"]).strip(), str(target["paper"]).strip(),
                                       _resolve(target["query"], queries, f"targets.{key}")))
         return cls(queries, tuple(figures), tuple(targets))
@@ -189,16 +188,7 @@ class RunTables:
     status: Mapping[str, Any]
     summary: pl.DataFrame
     metrics: pl.DataFrame
-
-    @property
-    def wide(self) -> pl.DataFrame:
-        """The summary one row per window ('-' for window-free values such as compute_seconds), one
-        column per "<variant_key>:<metric>": targets compare variants without self-joins."""
-        if self.summary.height == 0:
-            return pl.DataFrame({"window": []}, schema={"window": pl.String})
-        return (self.summary.with_columns(pl.col("window").fill_null("-"),
-                              (pl.col("variant_key") + ":" + pl.col("metric")).alias("column"))
-                .pivot(on="column", index="window", values="value", aggregate_function="first"))
+    wide: pl.DataFrame          # the summary pivoted: one row per window, one column per "<variant_key>:<metric>"
 
     def query(self, sql: str) -> pl.DataFrame:
         context = pl.SQLContext(summary=self.summary, metrics=self.metrics, wide=self.wide, eager=True)
@@ -222,8 +212,19 @@ def load_run(run_dir: Path) -> RunTables:
         floats = [c for c, t in df.schema.items() if t in (pl.Float32, pl.Float64)]
         return df.with_columns(pl.col(c).fill_nan(None) for c in floats)
 
+    summary = read("summary.parquet")
     return RunTables(run_dir, str(status.get("experiment") or config.get("experiment_name")), config, status,
-                     read("summary.parquet"), read("metrics.parquet"))
+                     summary, read("metrics.parquet"), pivot_summary(summary))
+
+
+def pivot_summary(summary: pl.DataFrame) -> pl.DataFrame:
+    """The summary one row per window ('-' for window-free values such as compute_seconds), one
+    column per "<variant_key>:<metric>": targets compare variants without self-joins."""
+    if summary.height == 0:
+        return pl.DataFrame(schema={"window": pl.String})
+    return (summary.with_columns(pl.col("window").fill_null("-"),
+                                 (pl.col("variant_key") + ":" + pl.col("metric")).alias("column"))
+            .pivot(on="column", index="window", values="value", aggregate_function="first"))
 
 
 # ---- targets and figures -----------------------------------------------------------------------

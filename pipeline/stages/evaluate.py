@@ -137,25 +137,22 @@ def consistency_metrics(name: str, values: np.ndarray, dof: np.ndarray | int,
     return {name: mean, f"{name}_lower": lower, f"{name}_upper": upper}
 
 
-def nis_metrics(extras: Mapping[str, np.ndarray], prefix: str = "nis") -> dict[str, np.ndarray]:
-    """``{prefix}``, ``{prefix}_lower``, ``{prefix}_upper`` from an estimator's extras.
+def nis_metrics(extras: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """``nis``, ``nis_lower``, ``nis_upper`` from an estimator's extras (empty when it exports none).
 
     The filter convention: ``extras["nis"]`` (R, K) is each run's normalised innovation squared
     nu' S^-1 nu at each scan, from the innovation the filter itself used (an IMM's combined
     moment-matched prediction, a particle filter's predicted cloud), NaN where the run had no
     measurement or had not started; ``extras["nis_dof"]`` (R, K) the measurement dimension of that
-    innovation (chi-square dof for a consistent filter). Extras named ``{prefix}`` /
-    ``{prefix}_dof`` (e.g. ``nis_s1`` for one radar's local tracks) work the same way. Empty when
-    the estimator exports no NIS.
+    innovation (chi-square dof for a consistent filter).
     """
-    if prefix not in extras:
+    if "nis" not in extras:
         return {}
-    values = np.asarray(extras[prefix], dtype=float)
-    dof = np.asarray(extras.get(f"{prefix}_dof", np.nan), dtype=float)
+    values = np.asarray(extras["nis"], dtype=float)
+    dof = np.asarray(extras.get("nis_dof", np.nan), dtype=float)
     if not np.all(np.isfinite(np.broadcast_to(dof, values.shape)[np.isfinite(values)])):
-        raise ValueError(f"extras[{prefix!r}]: a NIS value without its dof: export extras[{prefix + '_dof'!r}] "
-                         f"(R, K) beside it")
-    return consistency_metrics(prefix, values, dof)
+        raise ValueError("extras['nis']: a NIS value without its dof: export extras['nis_dof'] (R, K) beside it")
+    return consistency_metrics("nis", values, dof)
 
 
 def _count(flags: np.ndarray) -> np.ndarray:

@@ -61,8 +61,7 @@ def fault_flags(state: np.ndarray, covariance: np.ndarray, checks: FaultChecks =
                & np.where(both, np.isfinite(covariance), True).all(axis=(-1, -2))
                & np.where(both, True, np.isnan(covariance)).all(axis=(-1, -2)))
     finite_state = estimated.all(axis=-1) | reduced
-    finite = (finite_state & np.where(both, np.isfinite(covariance), False).any(axis=(-1, -2))
-              & np.where(both, np.isfinite(covariance), True).all(axis=(-1, -2)))
+    finite = finite_state & np.where(both, np.isfinite(covariance), True).all(axis=(-1, -2))
     # a run's rows before its first estimate are NaN by design (no track yet)
     started = np.logical_or.accumulate(finite_state, axis=1)
     flags = np.zeros(finite.shape, dtype=np.uint8)
