@@ -84,3 +84,17 @@ def test_every_variant_reports_nis_and_rmse_over_the_bound(tmp_path):
         assert {f"/metrics/nis/{key}", f"/metrics/nis/{key}_chi2_upper", f"/metrics/position_rmse_over_bound/{key}",
                 f"/metrics/nees_position/{key}_chi2_lower"} <= entities, key
     assert metrics["variant_key"].n_unique() >= 2
+
+
+def test_the_bound_is_computed_once_per_truth_not_once_per_variant(monkeypatch):
+    study, scenario, sensor = bound_study("sonobuoy_case1")
+    truth = scenario.generate(2, 1)
+    calls = []
+    original = type(study)._compute_bound
+    monkeypatch.setattr(type(study), "_compute_bound", lambda self, *a: calls.append(a[2]) or original(self, *a))
+    first = study.position_bound(truth, sensor, 0.0)
+    assert study.position_bound(truth, sensor, 0.0) is first and calls == [0.0]
+    study.position_bound(truth, sensor, 0.005)
+    other = scenario.generate(2, 2)                       # another truth: computed again, and for it alone
+    study.position_bound(other, sensor, 0.0)
+    assert calls == [0.0, 0.005, 0.0]

@@ -13,6 +13,8 @@ filter come below it, which the ratio then shows (< 1).
 
 from __future__ import annotations
 
+from typing import Any, Callable
+
 import numpy as np
 
 from filters.bounds import posterior_crlb
@@ -119,6 +121,24 @@ class RadarSingerBound:
         out = np.full(K, np.nan)
         out[1:] = np.sqrt(np.trace(bounds[:, np.ix_(pos, pos)[0], np.ix_(pos, pos)[1]], axis1=1, axis2=2))
         return out
+
+
+class PerTruth:
+    """Values computed from one truth and sensor (a bound along the true trajectory), kept for the
+    truth last asked about: the runner evaluates every variant against the same truth, so the
+    bound is computed once per (truth, sensor, key), not once per variant. Holds the objects
+    themselves, compared by identity (ids could be reused), and only the latest truth's values."""
+
+    def __init__(self) -> None:
+        self._entries: list[tuple[Any, Any, Any, Any]] = []
+
+    def get(self, truth: Truth, sensor, key, compute: Callable[[], Any]) -> Any:
+        for cached_truth, cached_sensor, cached_key, value in self._entries:
+            if cached_truth is truth and cached_sensor is sensor and cached_key == key:
+                return value
+        value = compute()
+        self._entries = [e for e in self._entries if e[0] is truth] + [(truth, sensor, key, value)]
+        return value
 
 
 UNITS = {"position_bound": "m (sqrt trace of the PCRLB position block; the bound node says of which model)",

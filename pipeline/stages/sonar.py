@@ -23,6 +23,7 @@ from filters.mgekf import STATE_NAMES, SonarReports, jacobian_rows, relative_mot
 from pipeline import schemas
 from pipeline.data import Detections, Truth
 from pipeline.errors import ConfigError
+from pipeline.stages.bounds import PerTruth
 from pipeline.stages.evaluate import _quiet_nanmean, per_step_metrics
 
 UNITS = {"position_bound": "m (sqrt trace of the clairvoyant PCRLB position block)",
@@ -58,7 +59,7 @@ class SonarStudy:
         self.bump_window = float(bump_window)
         self.bound_model = None if bound_tau is None or bound_sigma_m is None else (
             float(bound_tau), float(bound_sigma_m), float(bound_velocity_std))
-        self._bound_cache: list = []
+        self._bounds = PerTruth()
 
     def check(self, scenario, sensor, estimators: dict) -> None:
         if not hasattr(sensor, "is_active"):
@@ -103,13 +104,7 @@ class SonarStudy:
         (no process noise; own-ship and target accelerations known), a bound for any estimator of
         this truth; "model": the trackers' 6-state Singer model (random target acceleration), which
         a deterministic truth lets a tracker undercut. Computed once per truth and sensor."""
-        for cached_truth, cached_sensor, cached_model, bound in self._bound_cache:
-            if cached_truth is truth and cached_sensor is sensor and cached_model == model:
-                return bound
-        bound = self._compute_bound(truth, sensor, model)
-        # holds the objects themselves (not their ids, which Python may reuse) and only this truth's
-        self._bound_cache = [c for c in self._bound_cache if c[0] is truth] + [(truth, sensor, model, bound)]
-        return bound
+        return self._bounds.get(truth, sensor, model, lambda: self._compute_bound(truth, sensor, model))
 
     def _compute_bound(self, truth: Truth, sensor, model: str) -> np.ndarray:
         tau, sigma_m, velocity_std = self.bound_model

@@ -27,6 +27,7 @@ from pipeline import schemas
 from pipeline.data import Detections, Truth
 from pipeline.errors import ConfigError
 from pipeline.seeding import run_generators
+from pipeline.stages.bounds import PerTruth
 from pipeline.stages.evaluate import _quiet_nanmean, consistency_metrics, nis_metrics
 
 UNITS = {"position_rmse": "m", "position_median_error": "m", "buoy_position_rmse": "m", "buoy_position_median_error": "m",
@@ -88,6 +89,7 @@ class SonobuoyStudy:
         self.bound_buoy_sigma = None if bound_buoy_sigma is None else float(bound_buoy_sigma)
         self.bound_noise_gain = bound_noise_gain
         self.bound_model_target_sigma = None if bound_model_target_sigma is None else float(bound_model_target_sigma)
+        self._bounds = PerTruth()
         for name, (t0, t1) in self.peak_windows.items():
             if not t0 <= t1:
                 raise ValueError(f"peak_windows.{name}: [{t0}, {t1}] must have t0 <= t1 (seconds)")
@@ -158,6 +160,11 @@ class SonobuoyStudy:
         return out
 
     def position_bound(self, truth: Truth, sensor, target_sigma: float) -> np.ndarray:
+        """Once per truth, sensor and target noise (every variant is evaluated against the same truth);
+        see ``_compute_bound``."""
+        return self._bounds.get(truth, sensor, target_sigma, lambda: self._compute_bound(truth, sensor, target_sigma))
+
+    def _compute_bound(self, truth: Truth, sensor, target_sigma: float) -> np.ndarray:
         """(K,) sqrt(trace) of the target position block of the PCRLB (filters.bounds) of the 20
         states [m], with the true mode sequence known and measurement-origin uncertainty ignored.
 
