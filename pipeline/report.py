@@ -19,8 +19,11 @@ Experiments declare their part in their YAML under ``report`` (next to ``report.
 ``report.figures``  name -> {title, query (a query name or SQL), x, y, series, lower, upper, kind
     (line | step | bar), xlabel, ylabel, logy, reference: [{label, x: [...], y: [...]}]}: one line
     per value of ``series`` (the paper's points drawn as markers from ``reference``);
-``report.targets``  id -> {target, paper, query}: the query returns one row with a text column
-    ``measured`` and a boolean ``pass``.
+``report.targets``  id -> {target, paper, query, timed (optional)}: the query returns one row with
+    a text column ``measured`` and a boolean ``pass``; ``timed: true`` marks a target judged on wall
+    time (the report checks it; the reproduction tests, which read the same definitions, do not);
+``report.findings`` id -> {finding, paper, query}: a number the spec asks to report beside a
+    reference without a threshold; the query returns one row with ``measured``.
 
 A sweep folder (``multirun/<time>``, or any folder holding runs below it) gets one report per run and
 an ``index.md`` with each run's targets passed. ``--check`` exits 1 when any target is FAIL or
@@ -44,6 +47,8 @@ import polars as pl
 FIGURE_KEYS = {"title", "query", "x", "y", "series", "lower", "upper", "kind", "xlabel", "ylabel", "logy",
                "reference"}
 TARGET_KEYS = {"target", "paper", "query"}
+OPTIONAL_TARGET_KEYS = {"timed"}      # timed: true = judged on wall time, which the tests do not judge
+FINDING_KEYS = {"finding", "paper", "query"}
 KINDS = ("line", "step", "bar")
 
 # Built-in named queries: the limits section of every report. ``{metric}`` is filled per figure.
@@ -108,6 +113,16 @@ class TargetSpec:
     target: str
     paper: str
     query: str
+    timed: bool = False        # judged on wall time (machine-dependent): the report checks it, tests do not
+
+
+@dataclass(frozen=True)
+class FindingSpec:
+    """A number the spec asks to report beside a reference, without a pass/fail threshold."""
+    id: str
+    finding: str
+    paper: str
+    query: str
 
 
 @dataclass(frozen=True)
@@ -115,10 +130,11 @@ class ReportSpec:
     queries: Mapping[str, str]
     figures: tuple[FigureSpec, ...]
     targets: tuple[TargetSpec, ...]
+    findings: tuple[FindingSpec, ...] = ()
 
     @classmethod
     def from_config(cls, node: Mapping[str, Any] | None) -> "ReportSpec":
-        """Validate ``report.queries / figures / targets`` (a plain mapping: the run's config.yaml)."""
+        """Validate ``report.queries / figures / targets / findings`` (a plain mapping: the run's config.yaml)."""
         node = dict(node or {})
         queries = dict(node.get("queries") or {})
         for name, sql in queries.items():
@@ -155,11 +171,25 @@ class ReportSpec:
                               f"experiment that extends another adds targets to it); got {type(raw).__name__}")
         for key, target in raw.items():
             target = dict(target or {})
-            if set(target) != TARGET_KEYS:
-                raise ReportError(f"report.targets.{key}: keys {sorted(target)} must be exactly {sorted(TARGET_KEYS)}")
+            if not TARGET_KEYS <= set(target) <= TARGET_KEYS | OPTIONAL_TARGET_KEYS:
+                raise ReportError(f"report.targets.{key}: keys {sorted(target)} must be {sorted(TARGET_KEYS)}, "
+                                  f"optionally with {sorted(OPTIONAL_TARGET_KEYS)}")
+            timed = target.get("timed", False)
+            if not isinstance(timed, bool):
+                raise ReportError(f"report.targets.{key}.timed: {timed!r} must be true or false")
             targets.append(TargetSpec(str(key), str(target["target"]).strip(), str(target["paper"]).strip(),
-                                      _resolve(target["query"], queries, f"targets.{key}")))
-        return cls(queries, tuple(figures), tuple(targets))
+                                      _resolve(target["query"], queries, f"targets.{key}"), timed))
+        findings = []
+        raw = node.get("findings") or {}
+        if not isinstance(raw, Mapping):
+            raise ReportError(f"report.findings: must map an id to {{finding, paper, query}}; got {type(raw).__name__}")
+        for key, finding in raw.items():
+            finding = dict(finding or {})
+            if set(finding) != FINDING_KEYS:
+                raise ReportError(f"report.findings.{key}: keys {sorted(finding)} must be exactly {sorted(FINDING_KEYS)}")
+            findings.append(FindingSpec(str(key), str(finding["finding"]).strip(), str(finding["paper"]).strip(),
+                                        _resolve(finding["query"], queries, f"findings.{key}")))
+        return cls(queries, tuple(figures), tuple(targets), tuple(findings))
 
 
 def _opt(value: Any) -> str | None:
@@ -250,6 +280,18 @@ def evaluate_target(tables: RunTables, spec: TargetSpec) -> TargetResult:
     return TargetResult(spec, str(row["measured"]), "PASS" if bool(row["pass"]) else "FAIL")
 
 
+def evaluate_finding(tables: RunTables, spec: FindingSpec) -> str:
+    """The finding's measured text, or why there is none (a broken query is reported, not raised)."""
+    try:
+        df = tables.query(spec.query)
+    except Exception as exc:  # noqa: BLE001
+        return f"query failed: {type(exc).__name__}: {str(exc).splitlines()[0]}"
+    if df.height != 1 or "measured" not in df.columns:
+        return f"query returned {df.height} row(s) with columns {df.columns}; expected one row with 'measured'"
+    measured = df.row(0, named=True)["measured"]
+    return "no value: an input of the query is NULL" if measured is None else str(measured)
+
+
 def draw_figure(df: pl.DataFrame, spec: FigureSpec, path: Path) -> None:
     import matplotlib
 
@@ -327,6 +369,7 @@ class RunReport:
     path: Path
     experiment: str
     targets: list[TargetResult] = field(default_factory=list)
+    findings: list[tuple[FindingSpec, str]] = field(default_factory=list)
     figures: list[Path] = field(default_factory=list)
 
     @property
@@ -393,6 +436,13 @@ def write_run_report(run_dir: Path, out_dir: Path | None = None, current: bool =
         lines += [""] + [_sql_block(t.spec.id, t.spec.query) for t in report.targets] + [""]
     else:
         lines += ["This experiment declares no reproduction targets (`report.targets`).", ""]
+    if spec.findings:
+        lines += ["## Findings", "", "Figures the spec asks to report beside a reference, with no pass/fail threshold.",
+                  "", "| id | finding | paper / spec | measured here |", "|---|---|---|---|"]
+        report.findings = [(f, evaluate_finding(tables, f)) for f in spec.findings]
+        for f, measured in report.findings:
+            lines.append(f"| {f.id} | {_cell(f.finding)} | {_cell(f.paper)} | {_cell(measured)} |")
+        lines += [""] + [_sql_block(f.id, f.query) for f in spec.findings] + [""]
 
     if spec.figures:
         lines += ["## Figures", ""]
@@ -460,11 +510,16 @@ def find_runs(path: Path) -> list[Path]:
                   key=natural)
 
 
-def latest_sweep(artifacts: Path) -> Path:
-    sweeps = sorted((p for p in (Path(artifacts) / "multirun").glob("*") if p.is_dir()), key=lambda p: p.name)
-    if not sweeps:
-        raise ReportError(f"--latest: no sweep under {Path(artifacts) / 'multirun'}; run one with python -m pipeline -m ...")
-    return sweeps[-1]
+def latest_result(artifacts: Path) -> Path:
+    """The newest sweep (``multirun/<time>``) or single run (``runs/<experiment>/<time>``), whichever
+    started last: both folder names are the start time, so they compare as text."""
+    artifacts = Path(artifacts)
+    sweeps = [p for p in (artifacts / "multirun").glob("*") if p.is_dir()]
+    runs = [p for p in (artifacts / "runs").glob("*/*") if (p / "summary.parquet").is_file()]
+    if not sweeps and not runs:
+        raise ReportError(f"--latest: no run under {artifacts / 'runs'} and no sweep under {artifacts / 'multirun'}; "
+                          f"run one with python -m pipeline [-m] ...")
+    return max(sweeps + runs, key=lambda p: p.name)
 
 
 def write_reports(path: Path, out: Path | None = None, current: bool = False) -> tuple[list[RunReport], Path | None]:
@@ -493,7 +548,7 @@ def write_reports(path: Path, out: Path | None = None, current: bool = False) ->
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m pipeline.report", description=__doc__.split("\n\n")[0])
     parser.add_argument("path", nargs="?", help="a run folder, or a sweep / artifacts folder holding runs")
-    parser.add_argument("--latest", action="store_true", help="report the newest sweep under --artifacts/multirun")
+    parser.add_argument("--latest", action="store_true", help="report the newest run or sweep under --artifacts (runs/ or multirun/)")
     parser.add_argument("--artifacts", default="artifacts", help="the artifacts root for --latest (default: artifacts)")
     parser.add_argument("--out", help="write the reports here instead of <run>/report/")
     parser.add_argument("--check", action="store_true", help="exit 1 when any reproduction target is FAIL or ERROR")
@@ -503,7 +558,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         if args.latest == bool(args.path):
             raise ReportError("give a run or sweep folder, or --latest (not both)")
-        path = latest_sweep(Path(args.artifacts)) if args.latest else Path(args.path)
+        path = latest_result(Path(args.artifacts)) if args.latest else Path(args.path)
         if not path.exists():
             raise ReportError(f"{path}: no such folder")
         reports, index = write_reports(path, None if args.out is None else Path(args.out), args.current)

@@ -67,6 +67,21 @@ def test_a_sweep_gets_one_report_per_run_and_an_index(tmp_path):
     assert main(["--latest", "--artifacts", str(tmp_path)]) == 0
 
 
+def test_latest_is_the_newest_of_single_runs_and_sweeps(tmp_path, capsys):
+    """python -m pipeline ... then python -m pipeline.report --latest: a single run counts (it used to
+    look under multirun/ only and refuse)."""
+    assert main(["--latest", "--artifacts", str(tmp_path)]) == 2
+    assert "no run under" in capsys.readouterr().err
+    older_sweep = tmp_path / "multirun" / "2026-01-01_10-00-00_000000"
+    older_sweep.mkdir(parents=True)
+    run_in_process(tmp_path, "job", "experiment=mie_los", "mc.runs=2")
+    newest = tmp_path / "runs" / "mie_los" / "2026-01-02_10-00-00_000000"
+    newest.parent.mkdir(parents=True)
+    (tmp_path / "runs" / "job").rename(newest)
+    assert main(["--latest", "--artifacts", str(tmp_path)]) == 0
+    assert "mie_los:" in capsys.readouterr().out and (newest / "report" / "report.md").is_file()
+
+
 def test_check_fails_the_command_when_a_target_fails(small_run, tmp_path):
     """--check: exit 1 when any target is FAIL or ERROR (at 3 runs of 60 steps some S2 targets fail)."""
     proc = subprocess.run([sys.executable, "-m", "pipeline.report", str(small_run), "--out", str(tmp_path), "--check"],
@@ -88,6 +103,8 @@ def test_a_missing_folder_or_an_unfinished_run_is_a_clear_error(tmp_path, capsys
 
 @pytest.mark.parametrize("override, message", [
     ("+report.targets.bad={target: t, paper: p}", "report.targets.bad: keys"),
+    ("+report.targets.bad={target: t, paper: p, query: 'SELECT 1', timed: sometimes}", "report.targets.bad.timed: 'sometimes'"),
+    ("+report.findings.bad={finding: f, query: 'SELECT 1'}", "report.findings.bad: keys"),
     ("+report.figures.bad={query: acceleration_rmse_by_step, x: time}", "report.figures.bad: missing ['y']"),
     ("+report.figures.bad={query: 'not sql', x: a, y: b}", "neither SQL nor a name"),
     ("+report.figures.bad={query: acceleration_rmse_by_step, x: time, y: value, kind: pie}", "kind: 'pie'"),
