@@ -18,7 +18,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
 
-import numpy as np
 import polars as pl
 from omegaconf import DictConfig, OmegaConf
 
@@ -26,9 +25,9 @@ from pipeline import schemas
 from pipeline.config import build, flatten, selected_variants, validate
 from pipeline.errors import ConfigError
 from pipeline.stages.evaluate import Window, metrics_frame, summary_rows
-from pipeline.stages.faults import FaultChecks, fault_flags, fault_summary
+from pipeline.stages.faults import FaultChecks, fault_summary
 from pipeline.stages.report import ReportContext, format_summary
-from pipeline.stages.track import SingleTargetStudy
+from pipeline.stages.track import SingleTargetStudy, filter_runs, flags_from_table, with_fault_flags
 from pipeline.store import StageCache, atomic_write_parquet, atomic_write_text, package_version, publish, stable_hash, stage_key
 
 log = logging.getLogger("pipeline")
@@ -234,11 +233,15 @@ def run_experiment(cfg: DictConfig, ctx: RunContext) -> RunOutcome:
     provenance = {"mtt.experiment": experiment, "mtt.config_hash": config_hash, "mtt.package_version": package_version()}
     stages = _Stages(cache, ctx, provenance)
 
-    scenario_key = stage_key("scenario", {"scenario": resolved["scenario"], "runs": runs, "seed": seed})
+    # each key covers the import closure of the code that makes the table (pipeline.fingerprint): the
+    # modules of every _target_ in the stage's config subtree, plus the codec and the stage's own code
+    scenario_key = stage_key("scenario", {"scenario": resolved["scenario"], "runs": runs, "seed": seed},
+                             producers=("pipeline.schemas", "pipeline.seeding"))
     truth, _, _ = stages.run("scenario", scenario_key, "truth", lambda: scenario.generate(runs, seed),
                           schemas.truth_to_frame, Path("truth.parquet"), f"{runs} runs")
     K = truth.time.size
-    measure_key = stage_key("measure", {"sensors": resolved["sensors"], "seed": seed}, (scenario_key,))
+    measure_key = stage_key("measure", {"sensors": resolved["sensors"], "seed": seed}, (scenario_key,),
+                            producers=("pipeline.schemas", "pipeline.seeding"))
     detections, _, _ = stages.run("measure", measure_key, "detections", lambda: sensor.measure(truth, seed),
                                schemas.detections_to_frame, Path("detections.parquet"), f"{runs} runs x {K} scans")
     track_input = study.track_input(truth, detections, sensor, seed)
@@ -254,7 +257,7 @@ def run_experiment(cfg: DictConfig, ctx: RunContext) -> RunOutcome:
     for v in variants:
         # the fault checks decide the table's fault column, so they are part of its key
         est_key = stage_key("track", {"filter": resolved["filters"][v], **study_node, "faults": resolved.get("faults")},
-                            (measure_key,))
+                            (measure_key,), producers=("pipeline.schemas", "pipeline.stages.track"))
         estimator = estimators[v]
         estimate, hit, table = stages.run(
             "track", est_key, study.estimate_table, lambda e=estimator: filter_runs(e, track_input, chunk_runs),
@@ -325,26 +328,6 @@ def run_experiment(cfg: DictConfig, ctx: RunContext) -> RunOutcome:
     return RunOutcome(summary, metrics, text)
 
 
-def filter_runs(estimator: Any, track_input: Any, chunk_runs: int | None) -> Any:
-    """``estimator.run`` over all runs at once, or ``chunk_runs`` runs at a time (mc.chunk_runs).
-
-    Each run's random numbers depend only on (seed, stage, run), and the filters treat runs
-    independently, so the chunked result equals the whole one bit for bit (tested): chunking
-    only bounds memory.
-    """
-    runs = _runs_of(track_input)
-    if not chunk_runs or chunk_runs >= runs:
-        return estimator.run(track_input)
-    parts = [estimator.run(track_input.select(range(first, min(first + chunk_runs, runs))))
-             for first in range(0, runs, chunk_runs)]
-    return type(parts[0]).concat_runs(parts)
-
-
-def _runs_of(track_input: Any) -> int:
-    runs = getattr(track_input, "runs", None)
-    return int(runs) if runs is not None else int(track_input.z.shape[0])
-
-
 def build_fault_checks(cfg: DictConfig) -> FaultChecks:
     node = cfg.get("faults")
     if node is None:
@@ -359,32 +342,6 @@ def build_fault_checks(cfg: DictConfig) -> FaultChecks:
         return FaultChecks(**OmegaConf.to_container(node, resolve=True))
     except (TypeError, ValueError) as exc:
         raise ConfigError(str(exc)) from None
-
-
-def with_fault_flags(study: Any, estimate: Any, truth: Any, checks: FaultChecks) -> tuple[pl.DataFrame, dict]:
-    """The study's estimate table plus ``fault``: the bit mask of pipeline.stages.faults per run x step
-    (each row of a run and step gets it, e.g. every target's row)."""
-    df, meta = study.estimate_to_frame(estimate, truth)
-    own = getattr(study, "fault_flags", None)          # a study whose estimate is not a TrackEstimate
-    if own is not None:
-        flags = own(estimate, truth, checks)
-    elif hasattr(estimate, "state") and hasattr(estimate, "covariance"):   # no truth comparison: no NEES test
-        extras = getattr(estimate, "extras", {}) or {}
-        flags = fault_flags(estimate.state, estimate.covariance, checks, None, extras.get("weights_underflow"))
-    else:
-        raise TypeError(f"{type(study).__name__} returns {type(estimate).__name__} estimates without state and "
-                        f"covariance: give the study a fault_flags(estimate, truth, checks) method")
-    run = df["run"].to_numpy()
-    step = df["step"].to_numpy()
-    return df.with_columns(pl.Series("fault", flags[run, step], dtype=pl.UInt8)), meta
-
-
-def flags_from_table(table: pl.DataFrame, runs: int, steps: int) -> np.ndarray:
-    """(R, K) fault bit masks back from an estimate table (0 where the table has no fault column)."""
-    flags = np.zeros((runs, steps), dtype=np.uint8)
-    if "fault" in table.columns:
-        np.bitwise_or.at(flags, (table["run"].to_numpy(), table["step"].to_numpy()), table["fault"].to_numpy())
-    return flags
 
 
 def _default_study(cfg: DictConfig) -> SingleTargetStudy:

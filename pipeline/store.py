@@ -5,8 +5,9 @@ fsync'ed, then renamed over the target: a reader sees the old file or the new on
 half-written one, and the temp name matches no ``*.parquet`` glob.
 
 The cache keeps one file per stage output under ``<artifacts>/cache/<stage>/<key>.parquet``.
-The key hashes the stage's resolved config, its inputs' keys, the package version and a
-fingerprint of the code that produces stage outputs. A cached
+The key hashes the stage's resolved config, its inputs' keys, the package version and the
+source of every module in the import closure of the code that produces the stage's output
+(pipeline.fingerprint: user packages named by ``_target_`` included). A cached
 file is trusted only if its metadata names the same table and key; anything else (truncated,
 foreign, another key) is reported, moved aside as ``*.rejected`` (nothing is deleted) and
 recomputed.
@@ -32,7 +33,6 @@ are deterministic, so both hold the same table.
 from __future__ import annotations
 
 import contextlib
-import functools
 import hashlib
 import json
 import logging
@@ -80,31 +80,16 @@ def stable_hash(obj: Any, length: int = 16) -> str:
     return hashlib.sha256(text.encode()).hexdigest()[:length]
 
 
-@functools.cache
-def code_fingerprint() -> str:
-    """Hash of the source that produces stage outputs (filters/, scenarios, sensors, table schemas,
-    the filters' input: stages/track.py and the study adapters).
-
-    In the cache key so that editing a filter, a scenario or a sensor recomputes what it
-    produced, even without a version bump; a researcher changing the math must never be handed
-    estimates made by the old code.
-    """
-    root = Path(__file__).resolve().parents[1]
-    digest = hashlib.sha256()
-    # the study adapters build the filters' input (track starts, priors drawn from the truth), so
-    # their modules count as producers of the estimates too
-    files = [*sorted((root / "filters").rglob("*.py")), *sorted((root / "pipeline" / "scenarios").rglob("*.py")),
-             *sorted((root / "pipeline" / "sensors").rglob("*.py")), root / "pipeline" / "schemas.py",
-             *[root / "pipeline" / "stages" / f"{name}.py" for name in ("track", "bias", "sonar", "sonobuoy")]]
-    for f in files:
-        digest.update(f.relative_to(root).as_posix().encode())
-        digest.update(f.read_bytes())
-    return digest.hexdigest()[:16]
-
-
-def stage_key(stage: str, config: Any, inputs: tuple[str, ...] = ()) -> str:
+def stage_key(stage: str, config: Any, inputs: tuple[str, ...] = (), producers: tuple[str, ...] = ()) -> str:
+    """The cache key of a stage output: its resolved config subtree, its inputs' keys, the package
+    and schema versions, and the source of the import closure of ``producers`` (module names) and
+    of every ``_target_`` in ``config`` (pipeline.fingerprint): editing any code that made the
+    table, a user's package included, recomputes it; a researcher changing the math must never be
+    handed estimates made by the old code."""
+    from pipeline.fingerprint import producers as named_producers, source_fingerprint
+    code = source_fingerprint(named_producers(config, *producers))
     return stable_hash({"stage": stage, "config": config, "inputs": list(inputs),
-                        "version": package_version(), "schema": SCHEMA_VERSION, "code": code_fingerprint()})
+                        "version": package_version(), "schema": SCHEMA_VERSION, "code": code})
 
 
 @contextlib.contextmanager

@@ -48,5 +48,6 @@ def test_the_cache_key_changes_with_the_code_that_produces_the_output(monkeypatc
     from pipeline import store
     key = store.stage_key("track", {"filter": {"name": "B"}}, ("abc",))
     assert key == store.stage_key("track", {"filter": {"name": "B"}}, ("abc",))
-    monkeypatch.setattr(store, "code_fingerprint", lambda: "edited-filter")
+    from pipeline import fingerprint
+    monkeypatch.setattr(fingerprint, "source_fingerprint", lambda modules: "edited-filter")
     assert store.stage_key("track", {"filter": {"name": "B"}}, ("abc",)) != key

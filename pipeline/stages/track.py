@@ -6,10 +6,14 @@ Each variant is an estimator built from its config node (``_target_``) with
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
+import polars as pl
 
 from filters.base import MeasurementSeries
 from pipeline.data import Detections
+from pipeline.stages.faults import FaultChecks, fault_flags
 
 
 def measurement_series(det: Detections, slot: int = 0, sensor_position=None) -> MeasurementSeries:
@@ -81,3 +85,50 @@ class SingleTargetStudy:
         where = getattr(kwargs.pop("sensor"), "position", None)
         located = {} if where is None else {"sensor_position": [float(v) for v in where]}
         write_recording(path, model_names=self.model_names, group_names=self.group_names, **kwargs, **located)
+
+
+# ---- the track stage's compute and codec (part of its cache key: pipeline.fingerprint) ------------
+def filter_runs(estimator: Any, track_input: Any, chunk_runs: int | None) -> Any:
+    """``estimator.run`` over all runs at once, or ``chunk_runs`` runs at a time (mc.chunk_runs).
+
+    Each run's random numbers depend only on (seed, stage, run), and the filters treat runs
+    independently, so the chunked result equals the whole one bit for bit (tested): chunking
+    only bounds memory.
+    """
+    runs = _runs_of(track_input)
+    if not chunk_runs or chunk_runs >= runs:
+        return estimator.run(track_input)
+    parts = [estimator.run(track_input.select(range(first, min(first + chunk_runs, runs))))
+             for first in range(0, runs, chunk_runs)]
+    return type(parts[0]).concat_runs(parts)
+
+
+def _runs_of(track_input: Any) -> int:
+    runs = getattr(track_input, "runs", None)
+    return int(runs) if runs is not None else int(track_input.z.shape[0])
+
+
+def with_fault_flags(study: Any, estimate: Any, truth: Any, checks: FaultChecks) -> tuple[pl.DataFrame, dict]:
+    """The study's estimate table plus ``fault``: the bit mask of pipeline.stages.faults per run x step
+    (each row of a run and step gets it, e.g. every target's row)."""
+    df, meta = study.estimate_to_frame(estimate, truth)
+    own = getattr(study, "fault_flags", None)          # a study whose estimate is not a TrackEstimate
+    if own is not None:
+        flags = own(estimate, truth, checks)
+    elif hasattr(estimate, "state") and hasattr(estimate, "covariance"):   # no truth comparison: no NEES test
+        extras = getattr(estimate, "extras", {}) or {}
+        flags = fault_flags(estimate.state, estimate.covariance, checks, None, extras.get("weights_underflow"))
+    else:
+        raise TypeError(f"{type(study).__name__} returns {type(estimate).__name__} estimates without state and "
+                        f"covariance: give the study a fault_flags(estimate, truth, checks) method")
+    run = df["run"].to_numpy()
+    step = df["step"].to_numpy()
+    return df.with_columns(pl.Series("fault", flags[run, step], dtype=pl.UInt8)), meta
+
+
+def flags_from_table(table: pl.DataFrame, runs: int, steps: int) -> np.ndarray:
+    """(R, K) fault bit masks back from an estimate table (0 where the table has no fault column)."""
+    flags = np.zeros((runs, steps), dtype=np.uint8)
+    if "fault" in table.columns:
+        np.bitwise_or.at(flags, (table["run"].to_numpy(), table["step"].to_numpy()), table["fault"].to_numpy())
+    return flags
