@@ -210,8 +210,25 @@ def prepare(cfg: DictConfig) -> Prepared:
     scenario = build(cfg.scenario, "scenario")
     sensor = build(cfg.sensors, "sensors")
     estimators = {v: build(cfg.filters[v], f"filters.{v}") for v in variants}
+    check_display_names(estimators)
     study.check(scenario, sensor, estimators)
     return Prepared(study, scenario, sensor, estimators, variants, report_tables)
+
+
+def check_display_names(estimators: dict[str, Any]) -> None:
+    """A variant's display name heads its row of the printed tables and its column of the recording,
+    and names it in summary.parquet: two variants with one name would collapse into one row."""
+    by_name: dict[str, list[str]] = {}
+    for key, estimator in estimators.items():
+        by_name.setdefault(str(getattr(estimator, "name", key)), []).append(key)
+    clashes = {name: keys for name, keys in by_name.items() if len(keys) > 1}
+    if clashes:
+        name, keys = next(iter(clashes.items()))
+        raise ConfigError(
+            f"filters.{keys[1]}.name: {name!r} is also the display name of " + ", ".join(f"filters.{k}" for k in keys[:1] + keys[2:])
+            + f". Each variant's name must be unique within an experiment (it heads the variant's row of the "
+            f"printed table and its column of the recording, and the variant column of summary.parquet); "
+            f"give one of them its own, e.g. filters.{keys[1]}.name={name}-{keys[1]}.")
 
 
 def run_experiment(cfg: DictConfig, ctx: RunContext) -> RunOutcome:

@@ -137,6 +137,10 @@ def test_truncated_or_foreign_cache_file_is_rejected_and_recomputed(tmp_path, ca
     (["scenario.steps=2.5"], "scenario.steps: 2.5 is not allowed; it must be an integer"),
     (["experiment=ao_vsimm_s2", "metrics.group_reached.group=M9"],
      "metrics.group_reached.group: 'M9' is not a model group of this experiment; groups are ['M1', 'M2', 'M3', 'M4', 'M5']"),
+    # two variants displayed alike collapsed into one row of the printed table and two identically
+    # titled columns of the recording, silently
+    (["+filter@filters.v2=vsimm", "filters.v2.t1_mu=0.9"],
+     "filters.v2.name: 'VSIMM' is also the display name of filters.vsimm. Each variant's name must be unique"),
 ])
 def test_bad_input_is_rejected_with_the_key_the_value_and_what_is_allowed(tmp_path, overrides, message):
     with pytest.raises(ConfigError) as info:
