@@ -8,7 +8,7 @@ notebook with arrays built by hand.
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
-from typing import Mapping, Protocol, Sequence
+from typing import ClassVar, Mapping, Protocol, Sequence
 
 import numpy as np
 
@@ -89,9 +89,38 @@ class TrackEstimate:
                    float(sum(p.compute_seconds for p in parts)))
 
 
+# What a sensor produces and a filter takes. A sensor class declares ``produces`` (one kind), a filter
+# class ``accepts`` (a set); the runner refuses a variant whose filter does not take what the
+# experiment's sensor produces, before any stage. Add a kind here when a new sensor needs one.
+MEASUREMENT_KINDS: dict[str, str] = {
+    "position_xy": "Cartesian position (x, y) [m] with its noise covariance (a MeasurementSeries, m = 2)",
+    "range_azimuth_elevation": "a static radar's range [m], azimuth and elevation [rad] relative to its "
+                               "sensor_position (a MeasurementSeries, m = 3)",
+    "biased_radar_reports": "several radars' range/azimuth reports of many targets with unknown sensor biases "
+                            "(filters.bias.RadarReports)",
+    "sonar_bearing_range": "a moving own-ship sonar's bearings, with range while active (filters.mgekf.SonarReports)",
+    "sonobuoy_bearings": "drifting sonobuoys' bearings in clutter and an observer's bearings to the buoys "
+                         "(filters.particle.BuoyReports)",
+}
+# kinds carried by a MeasurementSeries: what a filter that declares nothing (the Estimator protocol) takes
+SERIES_KINDS = frozenset({"position_xy", "range_azimuth_elevation"})
+
+
+def accepted_kinds(filter_class: object) -> frozenset[str]:
+    """The measurement kinds a filter class takes: its ``accepts``, or, when it declares none, every
+    kind a MeasurementSeries carries (the Estimator protocol's ``run(MeasurementSeries)``)."""
+    declared = getattr(filter_class, "accepts", None)
+    return SERIES_KINDS if declared is None else frozenset(declared)
+
+
 class Estimator(Protocol):
-    """A configured filter variant. Built from a config node with ``_target_``."""
+    """A configured filter variant. Built from a config node with ``_target_``.
+
+    ``accepts`` names the measurement kinds (MEASUREMENT_KINDS) its ``run`` takes; a class without
+    it is taken to accept any MeasurementSeries kind.
+    """
 
     name: str
+    accepts: ClassVar[frozenset[str]]
 
     def run(self, measurements: MeasurementSeries) -> TrackEstimate: ...

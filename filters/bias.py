@@ -395,6 +395,8 @@ class LocalTracking:
         "measurement" (at the measured range and azimuth; the ablation)
     """
 
+    accepts = frozenset({"biased_radar_reports"})
+
     estimates_bias = False
 
     def __init__(self, name: str = "local", process_noise_density: float = 6.0, start: str = "truth",

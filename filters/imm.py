@@ -277,6 +277,7 @@ def _logsumexp(a: np.ndarray, axis: int) -> np.ndarray:
 
 
 class _IMMBase:
+    accepts = frozenset({"position_xy"})       # 2-D position (seed 001 eq 7)
     """Shared run loop: two-point start at k = 1, one cycle per scan after that."""
 
     name: str

@@ -69,6 +69,7 @@ def _nis_extras(nis: np.ndarray, dof: int) -> dict[str, np.ndarray]:
 
 
 class _MIEBase:
+    accepts = frozenset({"range_azimuth_elevation"})   # converted in the filter (notes 2.1)
     name: str
     TESTS: tuple[str, ...] = ()
 

@@ -305,6 +305,8 @@ class SonarReports:
 class _SonarTracker:
     """Shared set-up of the architectures; see the module docstring for the model."""
 
+    accepts = frozenset({"sonar_bearing_range"})
+
     def __init__(self, name: str, tau: float = 60.0, sigma_m: float = 0.01, initial_velocity_std: float = 15.0,
                  bearing_row: str = "tan", clamp: float = 0.1) -> None:
         for key, value in (("tau", tau), ("sigma_m", sigma_m), ("initial_velocity_std", initial_velocity_std)):

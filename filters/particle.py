@@ -301,6 +301,8 @@ def _stack(generators, draw) -> np.ndarray:
 # --------------------------------------------------------------------------------------------
 
 class _ModelParameters:
+    accepts = frozenset({"sonobuoy_bearings"})
+
     def __init__(self, name: str, max_acceleration: float, target_sigma: float, buoy_sigma: float,
                  noise_gain: str = "standard") -> None:
         for key, value in (("max_acceleration", max_acceleration), ("target_sigma", target_sigma),

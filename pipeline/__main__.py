@@ -35,7 +35,7 @@ def main(cfg: DictConfig) -> float | None:
             sweep = Path(hc.sweep.dir).resolve().relative_to(artifacts.resolve()).as_posix()
         except ValueError:
             sweep = str(hc.sweep.dir)
-    ctx = RunContext(run_dir, artifacts, list(hc.overrides.task), sweep, hc.job.num if multirun else None)
+    ctx = RunContext(run_dir, artifacts, list(OmegaConf.to_container(hc.overrides.task, resolve=False)), sweep, hc.job.num if multirun else None)
     experiment = str(cfg.get("experiment_name"))
     try:
         outcome = run_experiment(cfg, ctx)

@@ -12,6 +12,7 @@ import inspect
 import json
 import types
 import typing
+from pathlib import Path
 from typing import Any
 
 from hydra.errors import InstantiationException
@@ -43,6 +44,10 @@ def selected_variants(cfg: DictConfig) -> list[str]:
 
 def validate(cfg: DictConfig) -> None:
     """Reject bad values before any stage runs."""
+    if cfg.get("filters") and cfg.get("sensors") is not None:
+        check_measurement_kinds(cfg, [str(v) for v in (cfg.get("variants") or cfg.filters.keys())
+                                      if v in cfg.filters])
+    check_interpolations(cfg)
     missing = sorted(OmegaConf.missing_keys(cfg))
     if missing:
         raise ConfigError(f"missing mandatory config value(s) {missing}: select an experiment with "
@@ -103,6 +108,83 @@ def _check_windows(cfg: DictConfig, key: str) -> dict:
             raise ConfigError(f"metrics.{key}.{name}: {bounds!r} must be [first_step, last_step] with "
                               f"0 <= first_step <= last_step.")
     return windows
+
+
+def check_interpolations(cfg: DictConfig) -> None:
+    """An interpolation (``${models}``) whose key this experiment does not define: one paragraph
+    naming the key, instead of OmegaConf's traceback from deep inside the first stage to read it."""
+    from omegaconf.errors import InterpolationResolutionError
+
+    try:
+        OmegaConf.to_container(cfg, resolve=True)
+    except InterpolationResolutionError as exc:
+        key = getattr(exc, "full_key", None) or "?"
+        raw = OmegaConf.to_container(cfg, resolve=False)
+        value: Any = raw
+        for part in str(key).split("."):
+            value = value.get(part) if isinstance(value, dict) else None
+        reason = str(exc).strip().splitlines()[0]
+        raise ConfigError(
+            f"{key}: {value!r} cannot be resolved ({reason}). It refers to a config node this experiment does not "
+            f"define: a config file written for another study may need that study's nodes (the IMMs' "
+            f"'${{models}}' is the model set of conf/models/, e.g. +models=acceleration13), or set {key} on the "
+            f"command line.") from None
+
+
+def filter_classes_in_conf() -> dict[str, Any]:
+    """conf/filter/<name>.yaml -> the class its ``_target_`` names (following a file's defaults)."""
+    from hydra.utils import get_object
+
+    folder = Path(__file__).resolve().parents[1] / "conf" / "filter"
+    found = {}
+    for path in sorted(folder.glob("*.yaml")):
+        node, seen = OmegaConf.load(path), 0
+        while "_target_" not in node and node.get("defaults") and seen < 5:
+            base = next((d for d in node.defaults if isinstance(d, str) and d != "_self_"), None)
+            if base is None:
+                break
+            node, seen = OmegaConf.load(folder / f"{base}.yaml"), seen + 1
+        try:
+            found[path.stem] = get_object(str(node["_target_"]))
+        except Exception:  # noqa: BLE001 - a broken file is reported when an experiment uses it
+            continue
+    return found
+
+
+def check_measurement_kinds(cfg: DictConfig, variants: list[str]) -> None:
+    """Refuse, before anything is built or run, a variant whose filter does not take what the
+    experiment's sensor produces (filters.base.MEASUREMENT_KINDS): one paragraph naming the variant,
+    both kinds and the filters in conf/filter/ that would fit."""
+    from hydra.utils import get_object
+
+    from filters.base import MEASUREMENT_KINDS, accepted_kinds
+
+    try:
+        sensor_class = get_object(str(cfg.sensors.get("_target_")))
+    except Exception:  # noqa: BLE001 - build() reports an unknown _target_ with its own message
+        return
+    produced = getattr(sensor_class, "produces", None)
+    if produced is None:             # a sensor that declares nothing: the filters find out themselves
+        return
+    for v in variants:
+        target = cfg.filters[v].get("_target_")
+        try:
+            filter_class = get_object(str(target))
+        except Exception:  # noqa: BLE001 - build() reports an unknown _target_ with its own message
+            continue
+        accepts = accepted_kinds(filter_class)
+        if produced in accepts:
+            continue
+        fitting = sorted(name for name, cls in filter_classes_in_conf().items() if produced in accepted_kinds(cls))
+        declared = "declares" if getattr(filter_class, "accepts", None) is not None else \
+            "declares no 'accepts', so it is taken to take a MeasurementSeries:"
+        raise ConfigError(
+            f"filters.{v}: {target} {declared} {sorted(accepts)} measurements, but this experiment's sensor "
+            f"({cfg.sensors.get('_target_')}) produces '{produced}' ({MEASUREMENT_KINDS.get(produced, 'undocumented')}). "
+            f"Filters in conf/filter/ that take '{produced}': {fitting or 'none'} (e.g. +filter@filters.{v}="
+            f"{fitting[0] if fitting else '<one of yours>'}); or run this filter in an experiment whose sensor produces "
+            f"one of {sorted(accepts)}. A filter class says what it takes with a class attribute, e.g. "
+            f"accepts = frozenset({{'{produced}'}}).")
 
 
 def build(node: DictConfig, key: str) -> Any:

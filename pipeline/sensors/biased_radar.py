@@ -64,6 +64,8 @@ class BiasedRadarNetwork:
         The radar's index in this list is its sensor index in ``Detections.sensor``.
     """
 
+    produces = "biased_radar_reports"          # filters.base.MEASUREMENT_KINDS
+
     def __init__(self, radars: Sequence[Mapping]) -> None:
         if isinstance(radars, (str, bytes, Mapping)) or len(radars) == 0:
             raise ValueError(f"radars: {radars!r} must be a non-empty list of radar mappings")

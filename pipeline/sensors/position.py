@@ -12,6 +12,8 @@ from pipeline.seeding import run_generators
 class PositionSensor:
     """z_k = (x, y) + v_k, v_k ~ N(0, noise_std^2 I2), every scan, every target, no misses."""
 
+    produces = "position_xy"          # filters.base.MEASUREMENT_KINDS
+
     def __init__(self, noise_std: float = 20.0, sensor_id: int = 0) -> None:
         positive("noise_std", noise_std, "m")
         self.noise_std = float(noise_std)

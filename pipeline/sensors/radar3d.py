@@ -67,6 +67,8 @@ class Radar3D:
     sensor_id : the value of ``Detections.sensor`` at every scan
     """
 
+    produces = "range_azimuth_elevation"          # filters.base.MEASUREMENT_KINDS
+
     def __init__(self, position: Sequence[float] = (0.0, 0.0, 0.0), range_std: float = 10.0,
                  azimuth_std: float = float(np.sqrt(4.9e-5)), elevation_std: float = float(np.sqrt(3.6e-5)),
                  sensor_id: int = 0) -> None:

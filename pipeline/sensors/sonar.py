@@ -50,6 +50,8 @@ class ActivePassiveSonar:
     range_std : range noise std [m] (>= 0)
     """
 
+    produces = "sonar_bearing_range"          # filters.base.MEASUREMENT_KINDS
+
     def __init__(self, active_intervals: Sequence[Sequence[float]] = ((0.0, 500.0),),
                  bearing_std_deg: float = 1.0, range_std: float = 10.0) -> None:
         intervals: list[tuple[float, float]] = []

@@ -72,6 +72,8 @@ class SonobuoyBearings:
     clutter_buoy_bearing_std_deg : clutter std of phi_i [deg] (>= 0)
     """
 
+    produces = "sonobuoy_bearings"          # filters.base.MEASUREMENT_KINDS
+
     def __init__(self, observer_position: Sequence[float] = (0.0, -8000.0), target_bearing_std_deg: float = 7.0,
                  buoy_bearing_std_deg: float = 1.5, miss_probability: float = 0.0, clutter_probability: float = 0.0,
                  clutter_target_bearing_std_deg: float = 15.0, clutter_buoy_bearing_std_deg: float = 5.0) -> None:

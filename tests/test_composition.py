@@ -1,0 +1,101 @@
+"""Filters compose by measurement kind: a variant whose filter does not take what the sensor
+produces is refused before any stage, with the filters that would fit (filters.base.MEASUREMENT_KINDS).
+
+Reported: +filter@filters.x=mie_a in study 001, a user's CV Kalman filter in sonar_case1 and
++filter@filters.x=fsimm in async_bias ran the scenario and measurement stages, then died with a
+traceback ('SonarReports' object has no attribute 'noise_covariance', InterpolationKeyError: 'models').
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import pytest
+from hydra.utils import get_object
+from omegaconf import OmegaConf
+
+from filters.base import MEASUREMENT_KINDS, SERIES_KINDS, accepted_kinds
+from pipeline.config import filter_classes_in_conf
+from pipeline.errors import ConfigError
+from tests.test_pipeline import cli, run_in_process
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_every_shipped_sensor_and_filter_declares_documented_kinds():
+    for path in sorted((ROOT / "conf" / "sensors").glob("*.yaml")):
+        sensor = get_object(OmegaConf.load(path)["_target_"])
+        assert sensor.produces in MEASUREMENT_KINDS, path.name
+    classes = filter_classes_in_conf()
+    assert len(classes) == len(list((ROOT / "conf" / "filter").glob("*.yaml")))
+    for name, cls in classes.items():
+        assert getattr(cls, "accepts", None), f"{name}: {cls.__name__} declares no accepts"
+        assert set(cls.accepts) <= set(MEASUREMENT_KINDS), name
+
+
+def test_a_filter_that_declares_nothing_takes_a_measurement_series():
+    class Plain:
+        def run(self, measurements): ...
+    assert accepted_kinds(Plain) == SERIES_KINDS
+
+
+@pytest.mark.parametrize("overrides, message", [
+    (["experiment=ao_vsimm_s1", "+filter@filters.x=mie_a"],
+     "filters.x: filters.input_estimation.InertialMIE declares ['range_azimuth_elevation'] measurements, but this "
+     "experiment's sensor (pipeline.sensors.position.PositionSensor) produces 'position_xy'"),
+    (["experiment=async_bias", "+filter@filters.x=fsimm"],
+     "Filters in conf/filter/ that take 'biased_radar_reports': ['bias_exx', 'bias_local', 'bias_proposed']"),
+    (["experiment=sonar_case1", "+filters.x={_target_: tests.test_composition.UserCV, name: CV}"],
+     "tests.test_composition.UserCV declares no 'accepts', so it is taken to take a MeasurementSeries: "
+     "['position_xy', 'range_azimuth_elevation'] measurements, but this experiment's sensor "
+     "(pipeline.sensors.sonar.ActivePassiveSonar) produces 'sonar_bearing_range'"),
+    (["experiment=mie_los", "+filter@filters.x=ammpf"], "Filters in conf/filter/ that take 'range_azimuth_elevation': "
+                                                         "['mie_a', 'mie_a_full', 'mie_b', 'mie_b_nocomp', 'mie_c']"),
+    (["experiment=ao_vsimm_s1", "filters.fsimm.models=${nothing}"],
+     "filters.fsimm.models: '${nothing}' cannot be resolved (Interpolation key 'nothing' not found)"),
+])
+def test_an_incompatible_variant_is_refused_before_any_stage(tmp_path, overrides, message):
+    with pytest.raises(ConfigError) as info:
+        run_in_process(tmp_path, "bad", "mc.runs=2", *overrides)
+    assert message in str(info.value)
+    assert not list(tmp_path.rglob("*.parquet"))
+
+
+class UserCV:
+    """A user's filter that declares no measurement kinds (the Estimator protocol's default)."""
+
+    def __init__(self, name: str = "CV") -> None:
+        self.name = name
+
+    def run(self, measurements):
+        raise AssertionError("never reached: refused before any stage")
+
+
+def test_on_the_command_line_the_refusal_is_one_paragraph(tmp_path):
+    proc = cli(tmp_path, "experiment=async_bias", "+filter@filters.x=fsimm", "mc.runs=2")
+    assert proc.returncode == 2
+    assert "Traceback" not in proc.stderr and proc.stderr.startswith("error: filters.x:")
+    assert proc.stderr.strip().count("\n") == 0
+    assert not (tmp_path / "cache").exists()         # no stage ran; the run folder records the refusal
+    (status,) = tmp_path.rglob("status.json")
+    assert '"status": "failed"' in status.read_text()
+
+
+def test_the_shipped_filters_run_in_every_experiment_of_their_kind():
+    """A filter that takes a kind runs with every sensor of that kind (composition is by kind, not by study)."""
+    from hydra import compose, initialize_config_dir
+
+    from pipeline.config import check_measurement_kinds
+    classes = filter_classes_in_conf()
+    with initialize_config_dir(version_base="1.3", config_dir=str(ROOT / "conf")):
+        for path in sorted((ROOT / "conf" / "experiment").glob("*.yaml")):
+            cfg = compose("config", overrides=[f"experiment={path.stem}"])
+            produced = get_object(cfg.sensors._target_).produces
+            fitting = [name for name, cls in classes.items() if produced in cls.accepts]
+            assert fitting, path.stem
+            check_measurement_kinds(cfg, list(cfg.filters.keys()))     # the shipped variants fit
+
+
+if __name__ == "__main__":
+    sys.exit(pytest.main([__file__]))
