@@ -20,7 +20,7 @@ if str(ROOT) not in sys.path:
 from hydra.utils import instantiate  # noqa: E402
 from omegaconf import OmegaConf  # noqa: E402
 
-from pipeline.stages.track import measurement_series  # noqa: E402
+from pipeline.track import measurement_series  # noqa: E402
 
 
 def main() -> int:
@@ -32,7 +32,7 @@ def main() -> int:
     args = parser.parse_args()
     conf = ROOT / "conf"
     truth = instantiate(OmegaConf.load(conf / "scenario" / "mie_los.yaml"), _convert_="all").generate(args.runs, args.seed)
-    detections = instantiate(OmegaConf.load(conf / "sensors" / "radar3d.yaml"), _convert_="all").measure(truth, args.seed)
+    detections = instantiate(OmegaConf.load(conf / "sensors" / "mie_los.yaml"), _convert_="all").measure(truth, args.seed)
     series = measurement_series(detections)
     rows = []
     for key in ("mie_a", "mie_a_full", "mie_b", "mie_c"):

@@ -52,7 +52,7 @@ from omegaconf import OmegaConf  # noqa: E402
 from benchmarks.reference_imm import reference_fsimm  # noqa: E402
 from filters.base import MeasurementSeries  # noqa: E402
 from filters.imm import FSIMM  # noqa: E402
-from pipeline.sensors.position import PositionSensor  # noqa: E402
+from pipeline.studies.ao_vsimm.sensor import PositionSensor  # noqa: E402
 
 MEASUREMENT_STD = 20.0
 REL_TOL = 1e-9          # max |difference| / max |value|, per quantity

@@ -22,12 +22,13 @@ import polars as pl
 from omegaconf import DictConfig, OmegaConf
 
 from pipeline import schemas
+from pipeline.contract import RecordingInputs, Study
 from pipeline.config import build, flatten, selected_variants, validate
 from pipeline.errors import ConfigError
-from pipeline.stages.evaluate import Window, metrics_frame, summary_rows
-from pipeline.stages.faults import FaultChecks, fault_summary
-from pipeline.stages.report import ReportContext, format_summary
-from pipeline.stages.track import SingleTargetStudy, filter_runs, flags_from_table, with_fault_flags
+from pipeline.evaluate import Window, metrics_frame, summary_rows
+from pipeline.faults import FaultChecks, fault_summary
+from pipeline.tables import ReportContext, format_summary
+from pipeline.track import SingleTargetStudy, filter_runs, flags_from_table, with_fault_flags
 from pipeline.store import StageCache, atomic_write_parquet, atomic_write_text, package_version, publish, stable_hash, stage_key
 
 log = logging.getLogger("pipeline")
@@ -101,7 +102,7 @@ def _windows(cfg: DictConfig, key: str, K: int) -> list[Window]:
 
 
 def build_report_tables(cfg: DictConfig) -> dict[str, Any]:
-    """report.tables: name -> table object (see pipeline.stages.report), built and checked up front."""
+    """report.tables: name -> table object (see pipeline.tables), built and checked up front."""
     report = cfg.get("report")
     nodes = report.get("tables") if isinstance(report, DictConfig) else None
     if report is not None and not isinstance(report, DictConfig):
@@ -117,14 +118,14 @@ def build_report_tables(cfg: DictConfig) -> dict[str, Any]:
     if not isinstance(nodes, DictConfig):
         raise ConfigError(f"report.tables: must be a mapping name -> table node with a _target_, not "
                           f"{type(nodes).__name__}; e.g. report.tables.table1: {{_target_: "
-                          f"pipeline.stages.report.BinnedTable, ...}}.")
+                          f"pipeline.tables.BinnedTable, ...}}.")
     tables = {}
     for name, node in nodes.items():
         if node is None:
             continue          # a table switched off with report.tables.NAME=null
         if not isinstance(node, DictConfig) or "_target_" not in node:
             raise ConfigError(f"report.tables.{name}: {node!r} is not a table node; it needs a _target_ naming a "
-                              f"class with render(ReportContext) -> str (e.g. pipeline.stages.report.BinnedTable).")
+                              f"class with render(ReportContext) -> str (e.g. pipeline.tables.BinnedTable).")
         table = build(node, f"report.tables.{name}")
         if not callable(getattr(table, "render", None)):
             raise ConfigError(f"report.tables.{name}: {node._target_} has no render(ReportContext) method.")
@@ -207,6 +208,10 @@ def prepare(cfg: DictConfig) -> Prepared:
     build_fault_checks(cfg)
     variants = selected_variants(cfg)
     study = build(cfg.study, "study") if cfg.get("study") is not None else _default_study(cfg)
+    if not isinstance(study, Study):
+        raise ConfigError(f"study: {cfg.study.get('_target_')} is not a pipeline.contract.Study; a study subclasses "
+                          f"it and provides the hooks it lists (track_input, estimate_to_frame, per_step_metrics, "
+                          f"record, ...).")
     scenario = build(cfg.scenario, "scenario")
     sensor = build(cfg.sensors, "sensors")
     estimators = {v: build(cfg.filters[v], f"filters.{v}") for v in variants}
@@ -274,7 +279,7 @@ def run_experiment(cfg: DictConfig, ctx: RunContext) -> RunOutcome:
     for v in variants:
         # the fault checks decide the table's fault column, so they are part of its key
         est_key = stage_key("track", {"filter": resolved["filters"][v], **study_node, "faults": resolved.get("faults")},
-                            (measure_key,), producers=("pipeline.schemas", "pipeline.stages.track"))
+                            (measure_key,), producers=("pipeline.schemas", "pipeline.track"))
         estimator = estimators[v]
         estimate, hit, table = stages.run(
             "track", est_key, study.estimate_table, lambda e=estimator: filter_runs(e, track_input, chunk_runs),
@@ -306,11 +311,9 @@ def run_experiment(cfg: DictConfig, ctx: RunContext) -> RunOutcome:
     ref = cfg.metrics.get("reference_variant")
     summary = summary_rows(per_variant, estimates, windows, ref if ref in variants else None, runs, reached,
                            count_windows, units)
-    extra = getattr(study, "extra_summary", None)
-    if extra is not None:
-        rows = extra(truth, estimates, display, runs, ref if ref in variants else None, sensor, per_variant)
-        if rows:
-            summary = pl.concat([summary, pl.DataFrame(rows, schema=summary.schema)])
+    rows = study.extra_summary(truth, estimates, display, runs, ref if ref in variants else None, sensor, per_variant)
+    if rows:
+        summary = pl.concat([summary, pl.DataFrame(rows, schema=summary.schema)])
     fault_rows = [{"variant": display[v], "variant_key": v, "metric": name, "window": None, "value": float(count),
                    "unit": "runs", "n_runs": runs} for v in variants for name, count in faults[v].items()]
     summary = pl.concat([summary, pl.DataFrame(fault_rows, schema=summary.schema)])
@@ -328,11 +331,10 @@ def run_experiment(cfg: DictConfig, ctx: RunContext) -> RunOutcome:
     if cfg.record.enabled:
         started = time.perf_counter()
         record_runs = list(cfg.record.runs) if not isinstance(cfg.record.runs, int) else [cfg.record.runs]
-        study.record(ctx.run_dir / "recording.rrd", experiment=experiment, truth=truth, detections=detections,
-                     estimates=estimates, display_names=display, metrics=metrics, record_runs=record_runs,
-                     sensor=sensor, config_text=OmegaConf.to_yaml(cfg, resolve=True),
-                     description=str(cfg.get("description", "")),
-                     context={"estimators": estimators, "track_input": track_input, "seed": seed})
+        study.record(ctx.run_dir / "recording.rrd", RecordingInputs(
+            experiment=experiment, truth=truth, detections=detections, estimates=estimates, display_names=display,
+            metrics=metrics, record_runs=record_runs, sensor=sensor, estimators=estimators, track_input=track_input,
+            seed=seed, config_text=OmegaConf.to_yaml(cfg, resolve=True), description=str(cfg.get("description", ""))))
         log.info("[record] recording.rrd (runs %s), %.2f s", record_runs, time.perf_counter() - started)
 
     text = format_summary(summary, experiment, runs)

@@ -24,6 +24,6 @@ def scenario(name: str, **overrides):
 
 
 def measurements(truth, seed: int, noise_std: float = 20.0) -> MeasurementSeries:
-    from pipeline.sensors.position import PositionSensor
+    from pipeline.studies.ao_vsimm.sensor import PositionSensor
     det = PositionSensor(noise_std).measure(truth, seed)
     return MeasurementSeries(det.time, det.z[:, :, 0], noise_std**2 * np.eye(2), det.detected[:, :, 0], det.sensor)

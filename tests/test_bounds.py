@@ -52,7 +52,7 @@ def test_sonar_bounds_shrink_when_active_and_the_trackers_sit_above_the_clairvoy
     assert np.nanmedian(ratio[1:]) > 1.0, np.nanmedian(ratio[1:])           # no estimator beats it
 
 
-# ---- the single-target studies' bounds (pipeline.stages.bounds) ---------------------------------
+# ---- the single-target studies' bounds (pipeline.bounds) ---------------------------------
 def test_study_001_known_input_bound_is_the_covariance_of_an_imm_of_identical_models():
     """Linear-Gaussian with a known input: the PCRLB is the mode-matched Kalman covariance; an IMM
     whose models are all the same is that filter, started the same way (two-point, scans 0-1)."""
@@ -60,8 +60,8 @@ def test_study_001_known_input_bound_is_the_covariance_of_an_imm_of_identical_mo
     from filters.imm import FSIMM
     from filters.models import AccelerationModelSet
     from pipeline.data import Truth
-    from pipeline.sensors.position import PositionSensor
-    from pipeline.stages.bounds import KnownInputBound
+    from pipeline.studies.ao_vsimm.sensor import PositionSensor
+    from pipeline.bounds import KnownInputBound
 
     q, noise, K = 3.0, 15.0, 40
     models = AccelerationModelSet.from_config({"a": [0, 0], "b": [0, 0]}, [[0.9, 0.1], [0.1, 0.9]],
@@ -80,8 +80,8 @@ def test_study_000_radar_information_is_the_polar_jacobian_information():
     """E[H' R_p^-1 H] with H the finite-difference Jacobian of (range, azimuth, elevation)."""
     from filters.coordinates import line_of_sight_angles
     from pipeline.data import Truth
-    from pipeline.sensors.radar3d import Radar3D
-    from pipeline.stages.bounds import RadarSingerBound
+    from pipeline.studies.mie_los.sensor import Radar3D
+    from pipeline.bounds import RadarSingerBound
 
     radar = Radar3D(position=[100.0, -50.0, 10.0], range_std=10.0, azimuth_std=0.007, elevation_std=0.006)
     p = np.array([8000.0, 4000.0, 2000.0])

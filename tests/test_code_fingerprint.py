@@ -104,9 +104,9 @@ def test_editing_a_users_filter_package_recomputes_its_track_stage(tmp_path):
 
 def test_the_closure_follows_imports_the_old_list_missed():
     """The scenarios and sensors import pipeline.seeding, checks and data; the filters' helpers."""
-    scenario = fingerprint.closure_modules(["pipeline.scenarios.sonar"])
+    scenario = fingerprint.closure_modules(["pipeline.studies.sonar.scenario"])
     assert {"pipeline.checks", "pipeline.data"} <= set(scenario)
-    sensor = fingerprint.closure_modules(["pipeline.sensors.radar3d"])
+    sensor = fingerprint.closure_modules(["pipeline.studies.mie_los.sensor"])
     assert "pipeline.seeding" in sensor
     mie = fingerprint.closure_modules(["filters.input_estimation"])
     assert {"filters.kalman", "filters.coordinates", "filters.models", "filters.base"} <= set(mie)

@@ -43,13 +43,13 @@ def test_a_filter_that_declares_nothing_takes_a_measurement_series():
 @pytest.mark.parametrize("overrides, message", [
     (["experiment=ao_vsimm_s1", "+filter@filters.x=mie_a"],
      "filters.x: filters.input_estimation.InertialMIE declares ['range_azimuth_elevation'] measurements, but this "
-     "experiment's sensor (pipeline.sensors.position.PositionSensor) produces 'position_xy'"),
+     "experiment's sensor (pipeline.studies.ao_vsimm.sensor.PositionSensor) produces 'position_xy'"),
     (["experiment=async_bias", "+filter@filters.x=fsimm"],
      "Filters in conf/filter/ that take 'biased_radar_reports': ['bias_exx', 'bias_local', 'bias_proposed']"),
     (["experiment=sonar_case1", "+filters.x={_target_: tests.test_composition.UserCV, name: CV}"],
      "tests.test_composition.UserCV declares no 'accepts', so it is taken to take a MeasurementSeries: "
      "['position_xy', 'range_azimuth_elevation'] measurements, but this experiment's sensor "
-     "(pipeline.sensors.sonar.ActivePassiveSonar) produces 'sonar_bearing_range'"),
+     "(pipeline.studies.sonar.sensor.ActivePassiveSonar) produces 'sonar_bearing_range'"),
     (["experiment=mie_los", "+filter@filters.x=ammpf"], "Filters in conf/filter/ that take 'range_azimuth_elevation': "
                                                          "['mie_a', 'mie_a_full', 'mie_b', 'mie_b_nocomp', 'mie_c']"),
     (["experiment=ao_vsimm_s1", "filters.fsimm.models=${nothing}"],

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipeline.stages.faults import FAULTS, FaultChecks, describe, fault_flags, fault_summary
+from pipeline.faults import FAULTS, FaultChecks, describe, fault_flags, fault_summary
 
 
 def healthy(R=5, K=8, n=4, seed=0):

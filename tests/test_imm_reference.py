@@ -21,8 +21,8 @@ from hydra.utils import instantiate  # noqa: E402
 from benchmarks.reference_imm import reference_fsimm  # noqa: E402
 from filters.base import MeasurementSeries  # noqa: E402
 from filters.imm import FSIMM  # noqa: E402
-from pipeline.scenarios.piecewise import PiecewiseAccelerationScenario  # noqa: E402
-from pipeline.sensors.position import PositionSensor  # noqa: E402
+from pipeline.studies.ao_vsimm.scenario import PiecewiseAccelerationScenario  # noqa: E402
+from pipeline.studies.ao_vsimm.sensor import PositionSensor  # noqa: E402
 
 RUNS, SEED = 3, 7
 RTOL = 1e-8

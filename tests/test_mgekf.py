@@ -11,8 +11,8 @@ from filters.mgekf import (
     jacobian_rows, nonlinear_update, pad_acceleration, range_g_row, relative_motion_model, wrap,
 )
 from filters.models import singer_process_noise, singer_transition
-from pipeline.scenarios.sonar import SonarEncounter
-from pipeline.sensors.sonar import ActivePassiveSonar
+from pipeline.studies.sonar.scenario import SonarEncounter
+from pipeline.studies.sonar.sensor import ActivePassiveSonar
 
 
 def _random_pairs(n=500, seed=0):

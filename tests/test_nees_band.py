@@ -8,7 +8,7 @@ import numpy as np
 
 from filters.bias import cv_transition, dcwna_process_noise
 from filters.kalman import predict, update
-from pipeline.stages.evaluate import consistency_metrics
+from pipeline.evaluate import consistency_metrics
 
 
 def nees_of_a_kalman_filter(q_scale: float, runs: int = 200, steps: int = 100, seed: int = 3) -> np.ndarray:

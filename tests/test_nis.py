@@ -9,7 +9,7 @@ import pytest
 from filters.base import MeasurementSeries
 from filters.imm import FSIMM, ModeSet, combined_prediction_nis
 from filters.models import AccelerationModelSet
-from pipeline.stages.evaluate import nis_metrics
+from pipeline.evaluate import nis_metrics
 
 
 def one_slot(x, P, log_predicted=0.0):

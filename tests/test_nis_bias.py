@@ -18,7 +18,7 @@ from filters.bias import (
 )
 from pipeline import schemas
 from pipeline.data import Detections, Truth
-from pipeline.stages.bias import BiasRegistrationStudy, bias_study_metrics, target_mean_nis
+from pipeline.studies.async_bias.adapter import BiasRegistrationStudy, bias_study_metrics, target_mean_nis
 
 POSITIONS = np.array([[0.0, 0.0], [10_000.0, 0.0]])
 NOISE_STD = np.array([[10.0, 1e-3], [10.0, 1e-3]])
@@ -195,8 +195,8 @@ def test_nis_round_trips_through_the_estimate_table_and_chunks():
 def test_recording_has_a_nis_tab_with_each_variant_and_its_band(tmp_path: Path):
     from rerun.chunk import RrdReader
 
-    from pipeline.recording_bias import write_bias_recording
-    from pipeline.stages.evaluate import metrics_frame
+    from pipeline.studies.async_bias.recording import write_bias_recording
+    from pipeline.evaluate import metrics_frame
     from tests.rrd_reading import entity_index, read_chunks, temporal
 
     truth, reports = _study_case(runs=2, targets=3, reports=10)

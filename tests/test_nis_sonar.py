@@ -15,7 +15,7 @@ from filters.mgekf import (
     relative_motion_model,
 )
 from pipeline.runner import RunContext, run_experiment
-from pipeline.stages.evaluate import nis_metrics
+from pipeline.evaluate import nis_metrics
 from tests.conftest import CONF
 from tests.rrd_reading import entity_index, read_chunks, temporal
 

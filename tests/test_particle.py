@@ -13,8 +13,8 @@ from filters.particle import (
     coordinated_turn, filter_jump_markov, liu_west, mode_bearings, predicted_positions, systematic_resample, turn_rates,
     weighted_moments, wrap,
 )
-from pipeline.scenarios.sonobuoy import SonobuoyField
-from pipeline.sensors.sonobuoy import SonobuoyBearings
+from pipeline.studies.sonobuoy.scenario import SonobuoyField
+from pipeline.studies.sonobuoy.sensor import SonobuoyBearings
 
 
 def test_systematic_resampling_keeps_the_weights_expectation():

@@ -15,7 +15,7 @@ from omegaconf import OmegaConf
 from filters.base import MeasurementSeries
 from filters.imm import AOVSIMM, FSIMM
 from pipeline.recording import recording_id, write_recording
-from pipeline.sensors.position import PositionSensor
+from pipeline.studies.ao_vsimm.sensor import PositionSensor
 
 ROOT = Path(__file__).resolve().parents[1]
 RUNS, STEPS = 3, 29                      # scans k = 0..29

@@ -1,4 +1,4 @@
-"""pipeline.recording_bias: study 002's .rrd has the entity tree, values and blueprint the viewer
+"""pipeline.studies.async_bias.recording: study 002's .rrd has the entity tree, values and blueprint the viewer
 layout relies on. A tiny synthetic case (2 radars, 3 targets, 20 reports) run through the real
 bias-registration filters, read back with rerun.chunk.RrdReader (no viewer)."""
 
@@ -13,9 +13,9 @@ import pytest
 
 from filters.bias import EXXRegistration, LocalTracking, PseudoBiasRegistration, RadarReports, TrackStart
 from pipeline.data import Detections, Truth
-from pipeline.recording_bias import BIAS_DISPLAY, write_bias_recording
-from pipeline.stages.bias import bias_study_metrics
-from pipeline.stages.evaluate import metrics_frame
+from pipeline.studies.async_bias.recording import BIAS_DISPLAY, write_bias_recording
+from pipeline.studies.async_bias.adapter import bias_study_metrics
+from pipeline.evaluate import metrics_frame
 from tests.rrd_reading import assert_complete_recording, entity_index, read_chunks, rows, temporal
 
 RUNS, TARGETS = 2, 3

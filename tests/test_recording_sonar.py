@@ -1,4 +1,4 @@
-"""pipeline.recording_sonar: study 003's .rrd has the entity tree, values and blueprint the viewer
+"""pipeline.studies.sonar.recording: study 003's .rrd has the entity tree, values and blueprint the viewer
 layout relies on. A tiny synthetic encounter (2 runs, 60 scans, active in [0, 15) and [30, 40) s)
 run through the real sonar and trackers, read back with rerun.chunk.RrdReader (no viewer)."""
 
@@ -11,10 +11,11 @@ import pytest
 
 from filters.mgekf import KFPlusMGEKF, OnlyMGEKF
 from pipeline.data import Truth
-from pipeline.scenarios.sonar import SonarEncounter
-from pipeline.sensors.sonar import ActivePassiveSonar
-from pipeline.stages.evaluate import metrics_frame
-from pipeline.stages.sonar import SonarStudy
+from pipeline.studies.sonar.scenario import SonarEncounter
+from pipeline.studies.sonar.sensor import ActivePassiveSonar
+from pipeline.evaluate import metrics_frame
+from pipeline.contract import RecordingInputs
+from pipeline.studies.sonar.adapter import SonarStudy
 from tests.rrd_reading import assert_complete_recording, entity_index, read_chunks, rows, temporal
 
 RUNS, RECORD = 2, [1]
@@ -40,10 +41,11 @@ def case():
 
 def _write(case, path: Path, record_runs=RECORD, truth=None) -> None:
     # through the study adapter, as the runner calls it
-    SonarStudy.record(path, experiment="sonar tiny", truth=truth or case["truth"], detections=case["det"],
-                      estimates=case["estimates"], display_names=VARIANTS, metrics=case["metrics"],
-                      record_runs=record_runs, sensor=case["sensor"], config_text="study: 003\n",
-                      description="A tiny study 003 for the test.", ellipse_stride=STRIDE)
+    SonarStudy().record(path, RecordingInputs(
+        experiment="sonar tiny", truth=truth or case["truth"], detections=case["det"], estimates=case["estimates"],
+        display_names=VARIANTS, metrics=case["metrics"], record_runs=record_runs, sensor=case["sensor"],
+        estimators={}, track_input=None, seed=0, config_text="study: 003\n",
+        description="A tiny study 003 for the test.", options={"ellipse_stride": STRIDE}))
 
 
 @pytest.fixture(scope="module")

@@ -1,4 +1,4 @@
-"""pipeline.recording_sonobuoy: study 004's .rrd has the entity tree, values and blueprint the viewer
+"""pipeline.studies.sonobuoy.recording: study 004's .rrd has the entity tree, values and blueprint the viewer
 layout relies on. A tiny synthetic case (2 runs, 15 scans, a right turn from 30 s, misses and
 clutter) from the real scenario and sensor, with hand-made estimates: one particle filter that
 kept a cloud for the recorded run, one that did not, and an EKF; read back with
@@ -12,11 +12,12 @@ import numpy as np
 import pytest
 
 from filters.base import TrackEstimate
-from pipeline.recording_sonobuoy import BEARING_LINE_SCALE, MODE_COLOURS, nees_band, write_sonobuoy_recording
-from pipeline.scenarios.sonobuoy import SonobuoyField
-from pipeline.sensors.sonobuoy import SonobuoyBearings
-from pipeline.stages.evaluate import metrics_frame
-from pipeline.stages.sonobuoy import MODE_NAMES, SonobuoyStudy
+from pipeline.studies.sonobuoy.recording import BEARING_LINE_SCALE, MODE_COLOURS, nees_band, write_sonobuoy_recording
+from pipeline.studies.sonobuoy.scenario import SonobuoyField
+from pipeline.studies.sonobuoy.sensor import SonobuoyBearings
+from pipeline.evaluate import metrics_frame
+from pipeline.contract import RecordingInputs
+from pipeline.studies.sonobuoy.adapter import MODE_NAMES, SonobuoyStudy
 from tests.rrd_reading import assert_complete_recording, entity_index, read_chunks, rows, temporal
 
 RUNS, RECORD = 2, [1]
@@ -62,10 +63,11 @@ def case():
 
 def _write(case, path: Path, record_runs=RECORD, estimates=None, **kwargs) -> None:
     # through the study adapter, as the runner calls it
-    SonobuoyStudy.record(path, experiment="sonobuoy tiny", truth=case["truth"], detections=case["det"],
-                         estimates=estimates or case["estimates"], display_names=VARIANTS, metrics=case["metrics"],
-                         record_runs=record_runs, sensor=case["sensor"], config_text="study: 004\n",
-                         description="A tiny study 004 for the test.", **kwargs)
+    SonobuoyStudy().record(path, RecordingInputs(
+        experiment="sonobuoy tiny", truth=case["truth"], detections=case["det"],
+        estimates=estimates or case["estimates"], display_names=VARIANTS, metrics=case["metrics"],
+        record_runs=record_runs, sensor=case["sensor"], estimators={}, track_input=None, seed=0,
+        config_text="study: 004\n", description="A tiny study 004 for the test.", options=kwargs))
 
 
 @pytest.fixture(scope="module")

@@ -12,7 +12,7 @@ import pytest
 from hydra import compose, initialize_config_dir
 
 from pipeline.config import build
-from pipeline.stages.bias import bias_study_metrics
+from pipeline.studies.async_bias.adapter import bias_study_metrics
 from tests.conftest import CONF
 
 RUNS = 16

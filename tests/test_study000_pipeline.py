@@ -19,10 +19,10 @@ from filters.base import MeasurementSeries, TrackEstimate
 from pipeline import schemas
 from pipeline.errors import ConfigError
 from pipeline.runner import RunContext, run_experiment
-from pipeline.scenarios.maneuver3d import PiecewiseAcceleration3D
-from pipeline.sensors.radar3d import Radar3D, cartesian, conversion_jacobian, wrap_angle
-from pipeline.stages.evaluate import COUNT_METRICS
-from pipeline.stages.report import BinnedTable, ReportContext, format_summary
+from pipeline.studies.mie_los.scenario import PiecewiseAcceleration3D
+from pipeline.studies.mie_los.sensor import Radar3D, cartesian, conversion_jacobian, wrap_angle
+from pipeline.evaluate import COUNT_METRICS
+from pipeline.tables import BinnedTable, ReportContext, format_summary
 from tests.conftest import CONF
 
 A = np.array([15.0, -10.0, -5.0])
@@ -37,7 +37,7 @@ def study_scenario(**overrides) -> PiecewiseAcceleration3D:
 
 
 def study_radar(**overrides) -> Radar3D:
-    node = OmegaConf.load(CONF / "sensors" / "radar3d.yaml")
+    node = OmegaConf.load(CONF / "sensors" / "mie_los.yaml")
     return instantiate(OmegaConf.merge(node, overrides), _convert_="all")
 
 

@@ -44,7 +44,7 @@ def test_experiments_compose_with_their_variants_and_tables():
     assert {cfg.filters[v].start for v in cfg.filters} == {"truth"}
     assert {ablation.filters[v].start for v in ablation.filters} == {"two_point"}
     assert {measured.filters[v].jacobian_at for v in measured.filters} == {"measurement"}
-    assert cfg.study._target_ == "pipeline.stages.bias.BiasRegistrationStudy"
+    assert cfg.study._target_ == "pipeline.studies.async_bias.adapter.BiasRegistrationStudy"
     for name in ("bias_rmse", "compensation", "consistency"):
         table = instantiate(cfg.report.tables[name], _convert_="all")
         assert table.rows

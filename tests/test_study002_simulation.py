@@ -10,8 +10,8 @@ from omegaconf import OmegaConf
 
 from pipeline.data import Truth
 from filters.bias import cv_transition, dcwna_process_noise
-from pipeline.scenarios.constant_velocity import ConstantVelocityGrid
-from pipeline.sensors.biased_radar import BiasedRadarNetwork
+from pipeline.studies.async_bias.scenario import ConstantVelocityGrid
+from pipeline.studies.async_bias.sensor import BiasedRadarNetwork
 from tests.conftest import CONF
 
 
@@ -27,11 +27,11 @@ def scenario_kwargs(**overrides) -> dict:
 
 
 def study_radars() -> BiasedRadarNetwork:
-    return instantiate(OmegaConf.load(CONF / "sensors" / "biased_radars.yaml"), _convert_="all")
+    return instantiate(OmegaConf.load(CONF / "sensors" / "async_bias.yaml"), _convert_="all")
 
 
 def radar_config(**overrides) -> list[dict]:
-    radars = OmegaConf.to_container(OmegaConf.load(CONF / "sensors" / "biased_radars.yaml"))["radars"]
+    radars = OmegaConf.to_container(OmegaConf.load(CONF / "sensors" / "async_bias.yaml"))["radars"]
     for radar in radars:
         radar.update(overrides)
     return radars

@@ -9,9 +9,9 @@ from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
 from pipeline.data import Truth
-from pipeline.scenarios.sonar import SonarEncounter
+from pipeline.studies.sonar.scenario import SonarEncounter
 from pipeline.schemas import detections_from_frame, detections_to_frame, truth_from_frame, truth_to_frame
-from pipeline.sensors.sonar import ActivePassiveSonar
+from pipeline.studies.sonar.sensor import ActivePassiveSonar
 from tests.conftest import CONF
 
 

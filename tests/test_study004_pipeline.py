@@ -59,7 +59,10 @@ def test_a_short_run_writes_tables_summary_and_a_recording_with_the_cloud(tmp_pa
     (["target_model.particles=5"], "filters.ammpf: particles: 5 must be an integer >= 10"),
     (["study.target_prior=somewhere"], "study: target_prior: 'somewhere' is not allowed"),
     (["filters.ammpf.lw_h=1.5"], "filters.ammpf: lw_h: 1.5 must be in [0, 1)"),
-    (["sensors=sonar_case1"], "sensors: ActivePassiveSonar is not the sonobuoy bearing sensor"),
+    # refused by measurement kind (pipeline.config.check_measurement_kinds) before the study's own check
+    (["sensors=sonar_case1"], "filters.ammpf: filters.particle.MultipleModelParticleFilter declares "
+                              "['sonobuoy_bearings'] measurements, but this experiment's sensor "
+                              "(pipeline.studies.sonar.sensor.ActivePassiveSonar) produces 'sonar_bearing_range'"),
 ])
 def test_bad_config_is_rejected_before_any_stage(tmp_path, overrides, message):
     with pytest.raises(ConfigError) as info:

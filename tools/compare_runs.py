@@ -1,11 +1,11 @@
 """Bit-for-bit comparison of every experiment's tables between a base commit and the working tree.
 
-    python tools/compare_runs.py --base 9997773 [--runs 5] [--experiments mie_los sonar_case1]
+    python tools/compare_runs.py --base 9997773 [--head REV] [--runs 5] [--experiments mie_los sonar_case1]
                                  [--rename-metric old=new ...] [--keep DIR]
 
 For each experiment (default: every file in conf/experiment/) it runs
 ``python -m pipeline experiment=NAME mc.runs=N record.enabled=false cache.enabled=false`` once in
-a git worktree of ``--base`` and once in this tree, then compares truth, detections, every
+a git worktree of ``--base`` and once in this tree (or in a worktree of ``--head``), then compares truth, detections, every
 variant's estimates and the per-step metrics: the same rows (sorted by their key columns), the
 same columns, and every value equal bit for bit (NaN equal to NaN). Provenance columns (run id,
 config hash, overrides, ...) are left out. ``--rename-metric old=new`` maps a metric renamed
@@ -90,6 +90,7 @@ def compare(name: str, base: Path, head: Path, renames: dict[str, str]) -> str |
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--base", required=True, help="the commit to compare against")
+    parser.add_argument("--head", help="compare this commit instead of the working tree")
     parser.add_argument("--runs", type=int, default=5)
     parser.add_argument("--experiments", nargs="*", help="default: every conf/experiment/*.yaml")
     parser.add_argument("--rename-metric", action="append", default=[], metavar="OLD=NEW")
@@ -99,15 +100,18 @@ def main(argv: list[str] | None = None) -> int:
     experiments = args.experiments or sorted(p.stem for p in (ROOT / "conf" / "experiment").glob("*.yaml"))
     work = args.keep or Path(tempfile.mkdtemp(prefix="compare-runs-"))
     work.mkdir(parents=True, exist_ok=True)
-    base_tree = work / "base-tree"
-    if not base_tree.exists():
-        subprocess.run(["git", "worktree", "add", "--detach", str(base_tree), args.base], cwd=ROOT, check=True,
-                       capture_output=True)
+    trees = {"base": (work / "base-tree", args.base)} | ({"head": (work / "head-tree", args.head)} if args.head else {})
+    for tree, rev in trees.values():
+        if not tree.exists():
+            subprocess.run(["git", "worktree", "add", "--detach", str(tree), rev], cwd=ROOT, check=True,
+                           capture_output=True)
+    base_tree = trees["base"][0]
+    head_tree = trees["head"][0] if args.head else ROOT
     different = 0
     try:
         for experiment in experiments:
             base_run = run_pipeline(base_tree, work / "base" / experiment, experiment, args.runs)
-            head_run = run_pipeline(ROOT, work / "head" / experiment, experiment, args.runs)
+            head_run = run_pipeline(head_tree, work / "head" / experiment, experiment, args.runs)
             base_tables, head_tables = tables_of(base_run), tables_of(head_run)
             for name in sorted(set(base_tables) | set(head_tables)):
                 if name not in base_tables or name not in head_tables:
@@ -117,7 +121,8 @@ def main(argv: list[str] | None = None) -> int:
                 different += problem is not None
                 print(f"{experiment:32s} {name:28s} {'equal' if problem is None else 'DIFFERENT: ' + problem}")
     finally:
-        subprocess.run(["git", "worktree", "remove", "--force", str(base_tree)], cwd=ROOT, capture_output=True)
+        for tree, _ in trees.values():
+            subprocess.run(["git", "worktree", "remove", "--force", str(tree)], cwd=ROOT, capture_output=True)
     print(f"{different} table(s) differ (base {args.base}, {args.runs} runs, {len(experiments)} experiments)")
     return 1 if different else 0
 

@@ -21,10 +21,11 @@ import numpy as np
 from filters.bounds import posterior_crlb
 from filters.mgekf import STATE_NAMES, SonarReports, jacobian_rows, relative_motion_model
 from pipeline import schemas
+from pipeline.contract import RecordingInputs, Study
 from pipeline.data import Detections, Truth
 from pipeline.errors import ConfigError
-from pipeline.stages.bounds import PerTruth
-from pipeline.stages.evaluate import _quiet_nanmean, per_step_metrics
+from pipeline.bounds import PerTruth
+from pipeline.evaluate import _quiet_nanmean, per_step_metrics
 
 UNITS = {"position_bound": "m (sqrt trace of the clairvoyant PCRLB position block)",
          "position_bound_model": "m (sqrt trace of the PCRLB of the trackers' Singer model)",
@@ -34,7 +35,7 @@ UNITS = {"position_bound": "m (sqrt trace of the clairvoyant PCRLB position bloc
          "paired_ratio_y": "ratio to the reference variant, median over runs", "peak_position_rmse": "m"}
 
 
-class SonarStudy:
+class SonarStudy(Study):
     """Adapter of study 003.
 
     Parameters
@@ -74,7 +75,7 @@ class SonarStudy:
         for label in ("ownship", "ownship_acceleration"):
             if label not in truth.labels:
                 raise ValueError(f"scenario: the truth has no '{label}' label; the sonar trackers need the own-ship's "
-                                 f"motion (use pipeline.scenarios.sonar.SonarEncounter)")
+                                 f"motion (use pipeline.studies.sonar.scenario.SonarEncounter)")
         return SonarReports(detections.time, detections.z[:, :, 0], detections.sensor == 1,
                             truth.labels["ownship_acceleration"][:, :, 0], truth.labels["ownship"][:, 0, 0, 2:4],
                             float(sensor.bearing_std), float(sensor.range_std))
@@ -136,10 +137,9 @@ class SonarStudy:
     def metric_units(names) -> dict[str, str]:
         return {n: UNITS[n] for n in names if n in UNITS}
 
-    @staticmethod
-    def record(path, context: dict | None = None, **kwargs) -> None:
-        from pipeline.recording_sonar import write_sonar_recording
-        write_sonar_recording(path, **kwargs)
+    def record(self, path, inputs: RecordingInputs) -> None:
+        from pipeline.studies.sonar.recording import write_sonar_recording
+        write_sonar_recording(path, sensor=inputs.sensor, **inputs.common(), **inputs.options)
 
     def extra_summary(self, truth: Truth, estimates: dict, display: dict, runs: int, reference: str | None,
                       sensor, per_variant: dict) -> list[dict]:

@@ -16,7 +16,7 @@ from filters.particle import BUOYS, STATE_NAMES, bearings  # eqs 8-9, shared wit
 from pipeline.checks import non_negative
 from pipeline.data import Detections, Truth
 from pipeline.seeding import run_generators
-from pipeline.sensors.radar3d import wrap_angle
+from pipeline.studies.mie_los.sensor import wrap_angle
 
 MEASUREMENT_NAMES = ("bearing",)
 MEASUREMENT_UNITS = ("rad",)

@@ -14,7 +14,7 @@ import numpy as np
 from pipeline.checks import non_negative
 from pipeline.data import Detections, Truth
 from pipeline.seeding import run_generators
-from pipeline.sensors.radar3d import wrap_angle
+from pipeline.studies.mie_los.sensor import wrap_angle
 
 MEASUREMENT_NAMES = ("bearing", "range")
 MEASUREMENT_UNITS = ("rad", "m")

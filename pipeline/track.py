@@ -12,8 +12,9 @@ import numpy as np
 import polars as pl
 
 from filters.base import MeasurementSeries
+from pipeline.contract import RecordingInputs, Study
 from pipeline.data import Detections
-from pipeline.stages.faults import FaultChecks, fault_flags
+from pipeline.faults import FaultChecks
 
 
 def measurement_series(det: Detections, slot: int = 0, sensor_position=None) -> MeasurementSeries:
@@ -29,18 +30,14 @@ def measurement_series(det: Detections, slot: int = 0, sensor_position=None) -> 
                              det.detected[:, :, slot], det.sensor, position)
 
 
-class SingleTargetStudy:
-    """The default stage adapter (studies 001 and 000): one target, one stream of scans.
+class SingleTargetStudy(Study):
+    """The default study (studies 001 and 000): one target, one stream of scans, TrackEstimates.
 
-    Every experiment runs through an adapter with the same methods (``check``, ``track_input``,
-    ``estimate_table`` / ``estimate_to_frame``, ``per_step_metrics``, ``metric_units``,
-    ``record``); the bias, sonar and sonobuoy studies name theirs with a ``study`` node, the
-    others get this one. ``model_names`` / ``group_names`` label the IMMs' modes in the recording;
-    ``bound`` (the config's ``bound`` node, pipeline.stages.bounds) adds the PCRLB metrics
-    ``position_bound`` and ``position_rmse_over_bound``.
+    Every experiment runs through a ``pipeline.contract.Study``; the bias, sonar and sonobuoy
+    studies name theirs with a ``study`` node, the others get this one. ``model_names`` /
+    ``group_names`` label the IMMs' modes in the recording; ``bound`` (the config's ``bound`` node)
+    adds the PCRLB metrics ``position_bound`` and ``position_rmse_over_bound``.
     """
-
-    estimate_table = "estimates"
 
     def __init__(self, model_names: list[str] | None = None, group_names: list[str] | None = None,
                  bound=None) -> None:
@@ -48,43 +45,37 @@ class SingleTargetStudy:
         self.group_names = group_names
         self.bound = bound
 
-    def check(self, scenario, sensor, estimators: dict) -> None:
-        """Nothing to cross-check beyond config.validate."""
-
-    @staticmethod
-    def track_input(truth, detections: Detections, sensor, seed: int) -> MeasurementSeries:
+    def track_input(self, truth, detections: Detections, sensor, seed: int) -> MeasurementSeries:
         return measurement_series(detections, sensor_position=getattr(sensor, "position", None))
 
-    @staticmethod
-    def estimate_to_frame(estimate, truth):
+    def estimate_to_frame(self, estimate, truth):
         from pipeline import schemas
         return schemas.estimate_to_frame(estimate, truth.state_names)
 
-    @staticmethod
-    def fault_flags(estimate, truth, checks) -> np.ndarray:
-        """pipeline.stages.faults masks, with the NEES test against target 0's truth."""
-        from pipeline.stages.faults import fault_flags
+    def fault_flags(self, estimate, truth, checks: FaultChecks) -> np.ndarray:
+        """pipeline.faults masks, with the NEES test against target 0's truth."""
+        from pipeline.faults import fault_flags
         return fault_flags(estimate.state, estimate.covariance, checks, estimate.state - truth.state[:, :, 0, :],
                            estimate.extras.get("weights_underflow"))
 
     def per_step_metrics(self, truth, estimate, sensor) -> dict[str, np.ndarray]:
-        from pipeline.stages.bounds import bound_metrics
-        from pipeline.stages.evaluate import per_step_metrics
+        from pipeline.bounds import bound_metrics
+        from pipeline.evaluate import per_step_metrics
         out = per_step_metrics(truth, estimate)
         return out | bound_metrics(self.bound, truth, sensor, out["position_rmse"])
 
-    @staticmethod
-    def metric_units(names) -> dict[str, str]:
-        from pipeline.stages.bounds import UNITS
+    def metric_units(self, names) -> dict[str, str]:
+        from pipeline.bounds import UNITS
         return {n: UNITS[n] for n in names if n in UNITS}      # evaluate.UNITS knows the generic names
 
-    def record(self, path, context: dict | None = None, **kwargs) -> None:
+    def record(self, path, inputs: RecordingInputs) -> None:
         from pipeline.recording import write_recording
         # a sensor with a position (e.g. the 3-D radar: polar detections relative to it) tells the
         # recording where it sits
-        where = getattr(kwargs.pop("sensor"), "position", None)
+        where = getattr(inputs.sensor, "position", None)
         located = {} if where is None else {"sensor_position": [float(v) for v in where]}
-        write_recording(path, model_names=self.model_names, group_names=self.group_names, **kwargs, **located)
+        write_recording(path, model_names=self.model_names, group_names=self.group_names, **inputs.common(),
+                        **located)
 
 
 # ---- the track stage's compute and codec (part of its cache key: pipeline.fingerprint) ------------
@@ -108,19 +99,11 @@ def _runs_of(track_input: Any) -> int:
     return int(runs) if runs is not None else int(track_input.z.shape[0])
 
 
-def with_fault_flags(study: Any, estimate: Any, truth: Any, checks: FaultChecks) -> tuple[pl.DataFrame, dict]:
-    """The study's estimate table plus ``fault``: the bit mask of pipeline.stages.faults per run x step
+def with_fault_flags(study: Study, estimate: Any, truth: Any, checks: FaultChecks) -> tuple[pl.DataFrame, dict]:
+    """The study's estimate table plus ``fault``: the bit mask of pipeline.faults per run x step
     (each row of a run and step gets it, e.g. every target's row)."""
     df, meta = study.estimate_to_frame(estimate, truth)
-    own = getattr(study, "fault_flags", None)          # a study whose estimate is not a TrackEstimate
-    if own is not None:
-        flags = own(estimate, truth, checks)
-    elif hasattr(estimate, "state") and hasattr(estimate, "covariance"):   # no truth comparison: no NEES test
-        extras = getattr(estimate, "extras", {}) or {}
-        flags = fault_flags(estimate.state, estimate.covariance, checks, None, extras.get("weights_underflow"))
-    else:
-        raise TypeError(f"{type(study).__name__} returns {type(estimate).__name__} estimates without state and "
-                        f"covariance: give the study a fault_flags(estimate, truth, checks) method")
+    flags = study.fault_flags(estimate, truth, checks)
     run = df["run"].to_numpy()
     step = df["step"].to_numpy()
     return df.with_columns(pl.Series("fault", flags[run, step], dtype=pl.UInt8)), meta

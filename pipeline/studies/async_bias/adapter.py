@@ -24,13 +24,14 @@ import numpy as np
 
 from filters.bias import BIAS_NAMES, BIAS_UNITS, BiasRegistrationResult, RadarReports, TrackStart
 from pipeline import schemas
+from pipeline.contract import RecordingInputs, Study
 from pipeline.data import Detections, Truth
 from pipeline.errors import ConfigError
 from pipeline.seeding import run_generators
-from pipeline.stages.evaluate import _quiet_nanmean, consistency_metrics
+from pipeline.evaluate import _quiet_nanmean, consistency_metrics
 
 
-class BiasRegistrationStudy:
+class BiasRegistrationStudy(Study):
     """Adapter of study 002.
 
     Parameters
@@ -59,7 +60,7 @@ class BiasRegistrationStudy:
         positions = getattr(sensor, "positions", None)
         if positions is None or np.ndim(positions) != 2 or np.shape(positions)[1] != 2:
             raise ConfigError(f"sensors: {type(sensor).__name__} is not a network of 2-D radars; the "
-                              f"bias-registration study needs one (e.g. sensors=biased_radars).")
+                              f"bias-registration study needs one (e.g. sensors=async_bias).")
         dt, duration = getattr(scenario, "dt", None), getattr(scenario, "duration", None)
         targets = getattr(scenario, "targets", None)
         if dt is not None and duration is not None:
@@ -118,7 +119,7 @@ class BiasRegistrationStudy:
     def fault_flags(result: BiasRegistrationResult, truth: Truth, checks) -> np.ndarray:
         """(R, reports) fault masks of the bias estimate and of every kept track, biased and
         compensated (no NEES test: the bias truth lives in the sensor, the tracks' in the truth)."""
-        from pipeline.stages.faults import fault_flags
+        from pipeline.faults import fault_flags
         flags = np.zeros(result.track_state.shape[:2], dtype=np.uint8)
         if np.isfinite(result.bias).any():
             flags |= fault_flags(result.bias, result.bias_covariance, checks)
@@ -137,10 +138,9 @@ class BiasRegistrationStudy:
         return bias_metric_units(sorted(names))
 
     # ---- record ----------------------------------------------------------------------------
-    @staticmethod
-    def record(path, context: dict | None = None, **kwargs) -> None:
-        from pipeline.recording_bias import write_bias_recording
-        write_bias_recording(path, **kwargs)
+    def record(self, path, inputs: RecordingInputs) -> None:
+        from pipeline.studies.async_bias.recording import write_bias_recording
+        write_bias_recording(path, sensor=inputs.sensor, **inputs.common())
 
 
 def _steps(truth_time: np.ndarray, times: np.ndarray) -> np.ndarray:

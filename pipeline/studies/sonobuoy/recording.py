@@ -59,7 +59,7 @@ from pipeline.data import Detections, Truth
 from pipeline.recording import (log_north_up, _atomic_recording, checked_record_runs, _ellipses, _lighter,
     _log_config, _log_metric_series, _metric_series, NORTH_UP_FRAME, _path_part, _PATH_SAFE, _time_columns,
     _TRUTH_COLOUR, variant_colour, _xy_index)
-from pipeline.stages.sonobuoy import MODE_NAMES, UNITS
+from pipeline.studies.sonobuoy.adapter import MODE_NAMES, UNITS
 
 if TYPE_CHECKING:  # pragma: no cover
     import polars as pl
@@ -86,7 +86,7 @@ def _check_inputs(truth: Truth, detections: Detections, estimates: Mapping[str, 
     observer = np.asarray(getattr(sensor, "observer_position", np.full(1, np.nan)), dtype=np.float64)
     if observer.shape != (2,) or not np.isfinite(observer).all():
         raise ValueError(f"sensor: {type(sensor).__name__} has no finite observer_position (east, north); the sonobuoy "
-                         f"recording draws the buoy bearings from it (use pipeline.sensors.sonobuoy.SonobuoyBearings)")
+                         f"recording draws the buoy bearings from it (use pipeline.studies.sonobuoy.sensor.SonobuoyBearings)")
     K = np.asarray(truth.time).shape[0]
     n = len(truth.state_names)
     if truth.state.shape != (R, K, 1, n):

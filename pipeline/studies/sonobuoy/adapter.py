@@ -24,11 +24,12 @@ import numpy as np
 
 from filters.particle import NOISE_GAINS, STATE_NAMES, BuoyReports, MultipleModelParticleFilter
 from pipeline import schemas
+from pipeline.contract import RecordingInputs, Study
 from pipeline.data import Detections, Truth
 from pipeline.errors import ConfigError
 from pipeline.seeding import run_generators
-from pipeline.stages.bounds import PerTruth
-from pipeline.stages.evaluate import _quiet_nanmean, consistency_metrics, nis_metrics
+from pipeline.bounds import PerTruth
+from pipeline.evaluate import _quiet_nanmean, consistency_metrics, nis_metrics
 
 UNITS = {"position_rmse": "m", "position_median_error": "m", "buoy_position_rmse": "m", "buoy_position_median_error": "m",
          "nees_position": "1 (chi2 dof = 2)", "nees_position_lower": "1 (95 % chi2 band of the run average)",
@@ -44,7 +45,7 @@ UNITS = {"position_rmse": "m", "position_median_error": "m", "buoy_position_rmse
 MODE_NAMES = ("cv", "ccw", "cw")
 
 
-class SonobuoyStudy:
+class SonobuoyStudy(Study):
     """Adapter of study 004.
 
     Parameters
@@ -230,19 +231,20 @@ class SonobuoyStudy:
                 add(key, "peak_median_error", name, np.nanmax(median[inside]) if inside.any() else None)
         return rows
 
-    @staticmethod
-    def record(path, context: dict | None = None, cloud_particles: int = 200, **kwargs) -> None:
+    def record(self, path, inputs: RecordingInputs) -> None:
         """The recording, with each particle filter's cloud for the recorded runs: those runs are
         filtered again alone with snapshots on (per-run random streams: the same particles as in the
         Monte Carlo batch, checked), so the estimates tables never carry clouds."""
         from dataclasses import replace
 
-        from pipeline.recording_sonobuoy import write_sonobuoy_recording
-        estimates = dict(kwargs.pop("estimates"))
-        runs = list(kwargs["record_runs"])
-        if context is not None:
-            reports = context["track_input"].select(runs)
-            for key, estimator in context["estimators"].items():
+        from pipeline.studies.sonobuoy.recording import write_sonobuoy_recording
+        options = dict(inputs.options)
+        cloud_particles = int(options.pop("cloud_particles", 200))
+        estimates = dict(inputs.estimates)
+        runs = list(inputs.record_runs)
+        if inputs.track_input is not None:
+            reports = inputs.track_input.select(runs)
+            for key, estimator in inputs.estimators.items():
                 if not isinstance(estimator, MultipleModelParticleFilter) or key not in estimates:
                     continue
                 again = copy.copy(estimator)
@@ -253,4 +255,4 @@ class SonobuoyStudy:
                 extras = {**estimates[key].extras, "particles": snap.extras["particles"],
                           "particle_modes": snap.extras["particle_modes"]}
                 estimates[key] = replace(estimates[key], extras=extras)
-        write_sonobuoy_recording(path, estimates=estimates, **kwargs)
+        write_sonobuoy_recording(path, sensor=inputs.sensor, **(inputs.common() | {"estimates": estimates}), **options)

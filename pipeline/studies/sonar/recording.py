@@ -101,7 +101,7 @@ def _check_inputs(truth: Truth, detections: Detections, estimates: Mapping[str, 
     K = np.asarray(truth.time).shape[0]
     if "ownship" not in truth.labels:
         raise ValueError("truth: no 'ownship' label (own-ship x, y, vx, vy in the world frame); the sonar "
-                         "recording draws the world frame from it (use pipeline.scenarios.sonar.SonarEncounter)")
+                         "recording draws the world frame from it (use pipeline.studies.sonar.scenario.SonarEncounter)")
     own = np.shape(truth.labels["ownship"])
     if own[:2] != (R, K) or own[-1] < 2:
         raise ValueError(f"truth.labels['ownship']: shape {own} must be (R, K, 1, 4) = ({R}, {K}, 1, 4)")

@@ -1,0 +1,126 @@
+"""What a study promises the runner: one abstract base, every hook listed here, none probed.
+
+A study is the glue between a scenario, a sensor and the filters of one experiment family. The
+runner (pipeline.runner) calls exactly these hooks, in this order:
+
+1. ``check(scenario, sensor, estimators)``: cross-node consistency, before any stage; raise
+   ``pipeline.errors.ConfigError`` naming the key.
+2. ``track_input(truth, detections, sensor, seed)``: the filters' view of the detections (a
+   ``filters.base.MeasurementSeries``, or the study's own report type). Randomness here (a drawn
+   track start) comes from ``pipeline.seeding.run_generators(seed, <stage>, R)``.
+3. per variant, ``estimate_to_frame(estimate, truth)`` and ``fault_flags(estimate, truth, checks)``:
+   the track stage's table (the codec named by ``estimate_table`` in ``pipeline.schemas``) and its
+   ``fault`` column.
+4. ``per_step_metrics(truth, estimate, sensor)`` per variant, ``metric_units(names)``, then
+   ``extra_summary(...)`` for summary rows beyond the per-window means.
+5. ``record(path, inputs)``: the Rerun recording of the runs in ``inputs.record_runs``.
+
+A study is a config node (``study: {_target_: ...}``); an experiment without one gets
+``pipeline.track.SingleTargetStudy``. Scenarios and sensors are plain config nodes with
+``generate(runs, seed) -> Truth`` and ``measure(truth, seed) -> Detections``; a sensor declares the
+measurement kind it ``produces`` and a filter the kinds it ``accepts`` (filters.base.MEASUREMENT_KINDS).
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, ClassVar, Iterable, Mapping, Protocol, Sequence
+
+import numpy as np
+
+if TYPE_CHECKING:
+    import polars as pl
+
+    from pipeline.data import Detections, Truth
+    from pipeline.faults import FaultChecks
+
+
+class Scenario(Protocol):
+    """A truth generator: every Monte Carlo run at once, run r's randomness from (seed, "scenario", r)."""
+
+    def generate(self, runs: int, seed: int) -> "Truth": ...
+
+
+class Sensor(Protocol):
+    """Measurement synthesis; ``produces`` names its measurement kind (filters.base.MEASUREMENT_KINDS)."""
+
+    produces: ClassVar[str]
+
+    def measure(self, truth: "Truth", seed: int) -> "Detections": ...
+
+
+@dataclass(frozen=True)
+class RecordingInputs:
+    """Everything a study's recording may draw: the stages' outputs, the built nodes, the config."""
+
+    experiment: str
+    truth: "Truth"
+    detections: "Detections"
+    estimates: Mapping[str, Any]              # variant key -> estimate, in display order
+    display_names: Mapping[str, str]
+    metrics: "pl.DataFrame"
+    record_runs: Sequence[int]
+    sensor: Any
+    estimators: Mapping[str, Any]             # variant key -> the built filter
+    track_input: Any                          # what the filters were given
+    seed: int
+    config_text: str = ""
+    description: str = ""
+    options: Mapping[str, Any] = field(default_factory=dict)
+
+    def common(self) -> dict[str, Any]:
+        """The keyword arguments every recording writer takes."""
+        return {"experiment": self.experiment, "truth": self.truth, "detections": self.detections,
+                "estimates": self.estimates, "display_names": self.display_names, "metrics": self.metrics,
+                "record_runs": self.record_runs, "config_text": self.config_text, "description": self.description}
+
+
+class Study(ABC):
+    """The hooks of a study (see the module docstring for when each is called).
+
+    ``estimate_table`` names the track stage's table codec in ``pipeline.schemas`` (FROM_FRAME).
+    """
+
+    estimate_table: ClassVar[str] = "estimates"
+
+    def check(self, scenario: Any, sensor: Any, estimators: Mapping[str, Any]) -> None:
+        """Cross-node consistency the nodes cannot check alone (default: nothing to check)."""
+
+    @abstractmethod
+    def track_input(self, truth: "Truth", detections: "Detections", sensor: Any, seed: int) -> Any:
+        """What every variant's ``run`` is given; the same object for all variants."""
+
+    @abstractmethod
+    def estimate_to_frame(self, estimate: Any, truth: "Truth") -> tuple["pl.DataFrame", dict[str, str]]:
+        """The track stage's table (one row per run x step x object) and its metadata."""
+
+    def fault_flags(self, estimate: Any, truth: "Truth", checks: "FaultChecks") -> np.ndarray:
+        """(R, K) uint8 bit masks of pipeline.faults per run and step. Default: the estimate's state and
+        covariance alone (no comparison with the truth, so no NEES test)."""
+        from pipeline.faults import fault_flags
+
+        if not (hasattr(estimate, "state") and hasattr(estimate, "covariance")):
+            raise TypeError(f"{type(self).__name__} returns {type(estimate).__name__} estimates without state and "
+                            f"covariance: override Study.fault_flags")
+        extras = getattr(estimate, "extras", {}) or {}
+        return fault_flags(estimate.state, estimate.covariance, checks, None, extras.get("weights_underflow"))
+
+    @abstractmethod
+    def per_step_metrics(self, truth: "Truth", estimate: Any, sensor: Any) -> dict[str, np.ndarray]:
+        """metric name -> (K,) values over the truth's steps (means over runs)."""
+
+    def metric_units(self, names: Iterable[str]) -> dict[str, str]:
+        """Units of this study's own metric names (the generic ones are pipeline.evaluate's)."""
+        return {}
+
+    def extra_summary(self, truth: "Truth", estimates: Mapping[str, Any], display: Mapping[str, str], runs: int,
+                      reference: str | None, sensor: Any,
+                      per_variant: Mapping[str, tuple[str, dict[str, np.ndarray]]]) -> list[dict]:
+        """Summary rows beyond the per-window means (the summary table's schema); default none."""
+        return []
+
+    @abstractmethod
+    def record(self, path: Path, inputs: RecordingInputs) -> None:
+        """Write the ``.rrd`` recording at ``path``."""

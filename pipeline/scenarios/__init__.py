@@ -1,1 +1,0 @@
-"""Truth generators. Each is a config node with ``_target_`` and a ``generate(runs, seed)``."""
