@@ -9,8 +9,9 @@ runner (pipeline.runner) calls exactly these hooks, in this order:
    ``filters.base.MeasurementSeries``, or the study's own report type). Randomness here (a drawn
    track start) comes from ``pipeline.seeding.run_generators(seed, <stage>, R)``.
 3. per variant, ``estimate_to_frame(estimate, truth)`` and ``fault_flags(estimate, truth, checks)``:
-   the track stage's table (the codec named by ``estimate_table`` in ``pipeline.schemas``) and its
-   ``fault`` column.
+   the track stage's table (named ``estimate_table``) and its ``fault`` column;
+   ``estimate_from_frame(df, metadata)`` reads it back (a cached stage, and later stages, see
+   exactly what the table holds).
 4. ``per_step_metrics(truth, estimate, sensor)`` per variant, ``metric_units(names)``, then
    ``extra_summary(...)`` for summary rows beyond the per-window means.
 5. ``record(path, inputs)``: the Rerun recording of the runs in ``inputs.record_runs``.
@@ -80,7 +81,7 @@ class RecordingInputs:
 class Study(ABC):
     """The hooks of a study (see the module docstring for when each is called).
 
-    ``estimate_table`` names the track stage's table codec in ``pipeline.schemas`` (FROM_FRAME).
+    ``estimate_table`` names the track stage's table (in its metadata and the cache's checks).
     """
 
     estimate_table: ClassVar[str] = "estimates"
@@ -95,6 +96,12 @@ class Study(ABC):
     @abstractmethod
     def estimate_to_frame(self, estimate: Any, truth: "Truth") -> tuple["pl.DataFrame", dict[str, str]]:
         """The track stage's table (one row per run x step x object) and its metadata."""
+
+    def estimate_from_frame(self, df: "pl.DataFrame", metadata: Mapping[str, str]) -> Any:
+        """The estimate back from its table (default: pipeline.schemas' TrackEstimate codec)."""
+        from pipeline.schemas import estimate_from_frame
+
+        return estimate_from_frame(df, metadata)
 
     def fault_flags(self, estimate: Any, truth: "Truth", checks: "FaultChecks") -> np.ndarray:
         """(R, K) uint8 bit masks of pipeline.faults per run and step. Default: the estimate's state and

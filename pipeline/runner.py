@@ -164,14 +164,16 @@ class _Stages:
         self.provenance = provenance
 
     def run(self, stage: str, key: str, table: str, compute: Callable[[], Any],
-            to_frame: Callable[[Any], tuple[pl.DataFrame, dict]], publish_as: Path, describe: str
+            to_frame: Callable[[Any], tuple[pl.DataFrame, dict]], publish_as: Path, describe: str,
+            from_frame: Callable[[pl.DataFrame, dict[str, str]], Any] | None = None
             ) -> tuple[Any, bool, pl.DataFrame]:
         """(the stage's value as the table holds it, whether it came from the cache, the table)."""
         started = time.perf_counter()
+        from_frame = from_frame or schemas.FROM_FRAME[table]
         hit = self.cache.load(stage, key, table)
         if hit is not None:
             df = hit[0]
-            value = schemas.FROM_FRAME[table](*hit)
+            value = from_frame(*hit)
             path = self.cache.path(stage, key)
             log.info("[%s] reused cached %s (key %s) %s, %.2f s", stage, path.name, key, describe, time.perf_counter() - started)
         else:
@@ -181,7 +183,7 @@ class _Stages:
             path = self.cache.store(stage, key, df, {**meta, **self.provenance})
             # later stages see exactly what the table holds (e.g. the float32 compact covariance),
             # so a recomputed stage and a cached one give bit-identical metrics
-            value = schemas.FROM_FRAME[table](df, {k: str(v) for k, v in meta.items()})
+            value = from_frame(df, {k: str(v) for k, v in meta.items()})
             log.info("[%s] computed %s, %.2f s (+%.2f s to write the cache)", stage, describe, computed,
                      time.perf_counter() - started - computed)
         publish(path, self.ctx.run_dir / publish_as)
@@ -284,7 +286,8 @@ def run_experiment(cfg: DictConfig, ctx: RunContext) -> RunOutcome:
         estimate, hit, table = stages.run(
             "track", est_key, study.estimate_table, lambda e=estimator: filter_runs(e, track_input, chunk_runs),
             lambda e: with_fault_flags(study, e, truth, fault_checks),
-            Path("estimates") / f"{v}.parquet", f"{getattr(estimator, 'name', v)}: {runs} runs x {K} scans")
+            Path("estimates") / f"{v}.parquet", f"{getattr(estimator, 'name', v)}: {runs} runs x {K} scans",
+            study.estimate_from_frame)
         if not hit:
             per_step = getattr(estimate, "extras", {}).get("models_evaluated")
             models = f", {per_step[:, 2:].mean():.2f} models/step" if per_step is not None and K > 2 else ""
@@ -300,26 +303,10 @@ def run_experiment(cfg: DictConfig, ctx: RunContext) -> RunOutcome:
                                   if name.startswith("fault_runs_") and count), v)
 
     started = time.perf_counter()
-    per_variant = {v: (display[v], study.per_step_metrics(truth, estimates[v], sensor)) for v in variants}
-    units = study.metric_units({m for _, metrics in per_variant.values() for m in metrics})
-    windows = _windows(cfg, "windows", K)
-    count_windows = _windows(cfg, "count_windows", K)
-    reached = None
-    gr = cfg.metrics.get("group_reached")            # checked by validate()
-    if gr:
-        reached = (str(gr.group), list(cfg.models.groups.keys()).index(gr.group), int(gr.by_step))
-    ref = cfg.metrics.get("reference_variant")
-    summary = summary_rows(per_variant, estimates, windows, ref if ref in variants else None, runs, reached,
-                           count_windows, units)
-    rows = study.extra_summary(truth, estimates, display, runs, ref if ref in variants else None, sensor, per_variant)
-    if rows:
-        summary = pl.concat([summary, pl.DataFrame(rows, schema=summary.schema)])
-    fault_rows = [{"variant": display[v], "variant_key": v, "metric": name, "window": None, "value": float(count),
-                   "unit": "runs", "n_runs": runs} for v in variants for name, count in faults[v].items()]
-    summary = pl.concat([summary, pl.DataFrame(fault_rows, schema=summary.schema)])
+    metrics, summary = evaluate_stage(cfg, study, sensor, truth, estimates, display, faults, runs)
     summary = summary.with_columns(pl.col("variant_key").replace_strict(
         {v: cached[v] for v in variants}, return_dtype=pl.Boolean).alias("estimates_from_cache"))
-    metrics = _provenance(metrics_frame(truth.time, per_variant, runs), ctx, experiment, config_hash)
+    metrics = _provenance(metrics, ctx, experiment, config_hash)
     summary = _provenance(summary, ctx, experiment, config_hash)
     summary = summary.with_columns(*[pl.lit(v).alias(k) for k, v in _config_columns(resolved).items()])
     atomic_write_parquet(metrics, ctx.run_dir / "metrics.parquet",
@@ -345,6 +332,34 @@ def run_experiment(cfg: DictConfig, ctx: RunContext) -> RunOutcome:
     write_status(ctx, experiment, "ok", config_hash=config_hash, runs=runs)
     log.info("done in %.2f s", time.perf_counter() - total_started)
     return RunOutcome(summary, metrics, text)
+
+
+def evaluate_stage(cfg: DictConfig, study: Study, sensor: Any, truth: Any, estimates: dict[str, Any],
+                   display: dict[str, str], faults: dict[str, dict[str, int]], runs: int
+                   ) -> tuple[pl.DataFrame, pl.DataFrame]:
+    """(per-step metrics, summary) of every variant, from the truth, the estimates as their tables hold
+    them, the fault counts of their tables, and the built sensor and study: the run computes it, and
+    ``python -m pipeline.recompute`` recomputes a stored run's from its files alone."""
+    variants = list(estimates)
+    K = truth.time.size
+    per_variant = {v: (display[v], study.per_step_metrics(truth, estimates[v], sensor)) for v in variants}
+    units = study.metric_units({m for _, metrics in per_variant.values() for m in metrics})
+    windows = _windows(cfg, "windows", K)
+    count_windows = _windows(cfg, "count_windows", K)
+    reached = None
+    gr = cfg.metrics.get("group_reached")            # checked by validate()
+    if gr:
+        reached = (str(gr.group), list(cfg.models.groups.keys()).index(gr.group), int(gr.by_step))
+    ref = cfg.metrics.get("reference_variant")
+    summary = summary_rows(per_variant, estimates, windows, ref if ref in variants else None, runs, reached,
+                           count_windows, units)
+    rows = study.extra_summary(truth, estimates, display, runs, ref if ref in variants else None, sensor, per_variant)
+    if rows:
+        summary = pl.concat([summary, pl.DataFrame(rows, schema=summary.schema)])
+    fault_rows = [{"variant": display[v], "variant_key": v, "metric": name, "window": None, "value": float(count),
+                   "unit": "runs", "n_runs": runs} for v in variants for name, count in faults[v].items()]
+    summary = pl.concat([summary, pl.DataFrame(fault_rows, schema=summary.schema)])
+    return metrics_frame(truth.time, per_variant, runs), summary
 
 
 def build_fault_checks(cfg: DictConfig) -> FaultChecks:

@@ -15,7 +15,6 @@ import numpy as np
 import polars as pl
 
 from filters.base import TrackEstimate
-from filters.bias import BIAS_NAMES, STATE_NAMES as BIAS_STUDY_STATE, BiasRegistrationResult
 from pipeline.data import Detections, Truth
 
 SCHEMA_VERSION = "3"          # 2: estimates tables carry the fault column; 3: and the filters' NIS
@@ -163,78 +162,6 @@ def estimate_from_frame(df: pl.DataFrame, meta: Mapping[str, str]) -> TrackEstim
     return TrackEstimate(time, _column_array(df, "x", (R, K, n)), covariance, extras, seconds)
 
 
-# ---- bias estimates (study 002) ------------------------------------------------------------
-def bias_estimates_to_frame(res: BiasRegistrationResult) -> tuple[pl.DataFrame, dict[str, str]]:
-    """Rows (run, step, time, sensor, target): target -1 is the stacked bias estimate (columns
-    bias, bias_P; the others null), target >= 0 a kept target's local track of the reporting radar
-    (x, P biased; x_compensated, P_compensated; bias columns null)."""
-    R, K, Tsel, _ = res.track_state.shape
-    objects = np.concatenate([[-1], res.targets]).astype(np.int32)
-    run, step, slot = _grid(R, K, Tsel + 1)
-    rows = run.size
-    is_bias = slot == 0
-
-    def per_object(bias_part: np.ndarray | None, track_part: np.ndarray | None, shape: tuple[int, ...]) -> np.ndarray:
-        full = np.full((R, K, Tsel + 1) + shape, np.nan)
-        if bias_part is not None:
-            full[:, :, 0] = bias_part
-        if track_part is not None:
-            full[:, :, 1:] = track_part
-        return full
-
-    n = res.bias.shape[-1]
-    cols = [pl.Series("run", run), pl.Series("step", step), pl.Series("time", res.time[step]),
-            pl.Series("sensor", res.sensor[step].astype(np.int32)), pl.Series("target", objects[slot])]
-    for name, bias_part, track_part, shape in (
-            ("x", None, res.track_state, (4,)), ("P", None, res.track_covariance, (4, 4)),
-            ("x_compensated", None, res.compensated_state, (4,)),
-            ("P_compensated", None, res.compensated_covariance, (4, 4)),
-            ("bias", res.bias, None, (n,)), ("bias_P", res.bias_covariance, None, (n, n))):
-        column = _array_column(name, per_object(bias_part, track_part, shape), rows)
-        keep = is_bias if track_part is None else ~is_bias
-        cols.append(pl.select(pl.when(pl.Series(keep)).then(column)).to_series().alias(name))
-    units = {"time": "s", "x": "m, m/s (x, y, vx, vy)", "P": "row-major 4 x 4", "bias": "per radar: m, rad, 1, 1",
-             "bias_P": f"row-major {n} x {n}", "compute_seconds": str(res.compute_seconds)}
-    if res.nis is not None and res.nis_dof is not None:
-        # the reporting radar's local-track NIS, one value per report: on the bias rows
-        for name, values in (("nis", res.nis), ("nis_dof", res.nis_dof)):
-            full = np.full((R, K, Tsel + 1), np.nan)
-            full[:, :, 0] = values
-            cols.append(pl.select(pl.when(pl.Series(is_bias)).then(pl.Series(name, full.reshape(-1))))
-                        .to_series().alias(name))
-        units.update(nis="1 (sum over the reporting radar's tracked targets of nu' S^-1 nu)",
-                     nis_dof="chi2 dof of nis (2 per target, summed)")
-    meta = table_metadata("bias_estimates", {"state": list(BIAS_STUDY_STATE), "bias": list(BIAS_NAMES),
-                                             "targets": res.targets.tolist()}, units)
-    return pl.DataFrame(cols), meta
-
-
-def bias_estimates_from_frame(df: pl.DataFrame, meta: Mapping[str, str]) -> BiasRegistrationResult:
-    names = json.loads(meta[META_NAMES])
-    targets = np.asarray(names["targets"], dtype=int)
-    df = df.sort("run", "step", "target")
-    R = int(df["run"].max()) + 1
-    K = int(df["step"].max()) + 1
-    Tsel = targets.size
-    if df.height != R * K * (Tsel + 1):
-        raise TableError(f"{df.height} rows do not fill the run x step x (bias + {Tsel} targets) grid")
-    bias_rows = df.filter(pl.col("target") < 0)
-    track_rows = df.filter(pl.col("target") >= 0)
-    n = bias_rows["bias"].dtype.size
-    first = bias_rows.filter(pl.col("run") == 0)
-    seconds = float(json.loads(meta[META_UNITS]).get("compute_seconds", "nan"))
-
-    def arr(frame: pl.DataFrame, name: str, shape: tuple[int, ...]) -> np.ndarray:
-        return frame[name].to_numpy().reshape(shape).astype(float)
-
-    return BiasRegistrationResult(
-        first["time"].to_numpy(), first["sensor"].to_numpy().astype(int), arr(bias_rows, "bias", (R, K, n)),
-        arr(bias_rows, "bias_P", (R, K, n, n)), targets, arr(track_rows, "x", (R, K, Tsel, 4)),
-        arr(track_rows, "P", (R, K, Tsel, 4, 4)), arr(track_rows, "x_compensated", (R, K, Tsel, 4)),
-        arr(track_rows, "P_compensated", (R, K, Tsel, 4, 4)), seconds,
-        *((arr(bias_rows, "nis", (R, K)), arr(bias_rows, "nis_dof", (R, K))) if "nis" in df.columns else ()))
-
-
 def _extent(df: pl.DataFrame, object_column: str) -> tuple[int, int, int]:
     if df.height == 0:
         raise TableError("the table has no rows")
@@ -246,5 +173,4 @@ def _extent(df: pl.DataFrame, object_column: str) -> tuple[int, int, int]:
     return R, K, T
 
 
-FROM_FRAME = {"truth": truth_from_frame, "detections": detections_from_frame, "estimates": estimate_from_frame,
-              "bias_estimates": bias_estimates_from_frame}
+FROM_FRAME = {"truth": truth_from_frame, "detections": detections_from_frame, "estimates": estimate_from_frame}

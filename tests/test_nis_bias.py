@@ -16,9 +16,9 @@ from filters.bias import (
     TrackStart, bias_jacobian, converted_covariance, converted_measurement, cv_transition, dcwna_process_noise,
     nis_over_targets, polar, predict_local, update_local,
 )
-from pipeline import schemas
 from pipeline.data import Detections, Truth
 from pipeline.studies.async_bias.adapter import BiasRegistrationStudy, bias_study_metrics, target_mean_nis
+from pipeline.studies.async_bias import codec as bias_codec
 
 POSITIONS = np.array([[0.0, 0.0], [10_000.0, 0.0]])
 NOISE_STD = np.array([[10.0, 1e-3], [10.0, 1e-3]])
@@ -180,13 +180,13 @@ def test_nis_round_trips_through_the_estimate_table_and_chunks():
     whole = estimator.run(reports)
     chunks = BiasRegistrationResult.concat_runs([estimator.run(reports.select([0, 1])),
                                                  estimator.run(reports.select([2]))])
-    df, meta = BiasRegistrationStudy.estimate_to_frame(whole, truth)
-    back = schemas.bias_estimates_from_frame(df, {k: str(v) for k, v in meta.items()})
+    df, meta = BiasRegistrationStudy().estimate_to_frame(whole, truth)
+    back = bias_codec.bias_estimates_from_frame(df, {k: str(v) for k, v in meta.items()})
     for got in (chunks, back):
         for name in ("nis", "nis_dof", "bias", "track_state", "compensated_covariance"):
             np.testing.assert_array_equal(getattr(got, name), getattr(whole, name), err_msg=name)
     assert df.filter(df["target"] >= 0)["nis"].null_count() == df.filter(df["target"] >= 0).height
-    old = schemas.bias_estimates_from_frame(df.drop("nis", "nis_dof"), meta)   # a table from before
+    old = bias_codec.bias_estimates_from_frame(df.drop("nis", "nis_dof"), meta)   # a table from before
     assert old.nis is None and "nis_s1" not in bias_study_metrics(truth, old, np.tile(BETA, 2))
 
 

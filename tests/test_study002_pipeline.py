@@ -12,10 +12,10 @@ import pytest
 from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 
-from pipeline import schemas
 from pipeline.errors import ConfigError
 from pipeline.runner import RunContext, run_experiment
 from pipeline.store import read_table
+from pipeline.studies.async_bias import codec as bias_codec
 from tests.conftest import CONF
 
 SHORT = ["scenario.duration=20", "mc.runs=3"]
@@ -72,9 +72,9 @@ def test_the_run_writes_the_study_tables(study_run):
     bias_rows = df.filter(pl.col("target") == -1)
     assert bias_rows["x"].null_count() == bias_rows.height and bias_rows["bias"].null_count() == 0
     assert sorted(df.filter(pl.col("target") >= 0)["target"].unique().to_list()) == [0, 31]
-    result = schemas.bias_estimates_from_frame(df, meta)
+    result = bias_codec.bias_estimates_from_frame(df, meta)
     assert result.bias.shape == (3, 40, 8) and result.track_state.shape == (3, 40, 2, 4)
-    local = schemas.bias_estimates_from_frame(*read_table(ctx.run_dir / "estimates" / "local.parquet"))
+    local = bias_codec.bias_estimates_from_frame(*read_table(ctx.run_dir / "estimates" / "local.parquet"))
     assert np.isnan(local.bias).all()
     np.testing.assert_allclose(local.track_state, result.track_state)   # the biased tracks are shared
     status = json.loads((ctx.run_dir / "status.json").read_text())

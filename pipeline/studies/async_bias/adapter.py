@@ -23,8 +23,8 @@ from typing import Sequence
 import numpy as np
 
 from filters.bias import BIAS_NAMES, BIAS_UNITS, BiasRegistrationResult, RadarReports, TrackStart
-from pipeline import schemas
 from pipeline.contract import RecordingInputs, Study
+from pipeline.studies.async_bias.codec import bias_estimates_from_frame, bias_estimates_to_frame
 from pipeline.data import Detections, Truth
 from pipeline.errors import ConfigError
 from pipeline.seeding import run_generators
@@ -111,9 +111,11 @@ class BiasRegistrationStudy(Study):
         start = TrackStart(self.start_time, start_state, np.diag(self.start_std**2))
         return RadarReports(detections.time, detections.sensor.astype(int), detections.z, positions, noise_std, start)
 
-    @staticmethod
-    def estimate_to_frame(result: BiasRegistrationResult, truth=None):
-        return schemas.bias_estimates_to_frame(result)
+    def estimate_to_frame(self, result: BiasRegistrationResult, truth=None):
+        return bias_estimates_to_frame(result)
+
+    def estimate_from_frame(self, df, metadata) -> BiasRegistrationResult:
+        return bias_estimates_from_frame(df, metadata)
 
     @staticmethod
     def fault_flags(result: BiasRegistrationResult, truth: Truth, checks) -> np.ndarray:
