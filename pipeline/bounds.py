@@ -141,10 +141,6 @@ class PerTruth:
         return value
 
 
-UNITS = {"position_bound": "m (sqrt trace of the PCRLB position block; the bound node says of which model)",
-         "position_rmse_over_bound": "ratio (position RMSE / sqrt(PCRLB); 1 = at the bound)"}
-
-
 def bound_metrics(bound, truth: Truth, sensor, position_rmse: np.ndarray) -> dict[str, np.ndarray]:
     """``position_bound`` and ``position_rmse_over_bound`` (K,) for a bound node (None: none)."""
     if bound is None:

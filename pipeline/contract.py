@@ -12,8 +12,10 @@ runner (pipeline.runner) calls exactly these hooks, in this order:
    the track stage's table (named ``estimate_table``) and its ``fault`` column;
    ``estimate_from_frame(df, metadata)`` reads it back (a cached stage, and later stages, see
    exactly what the table holds).
-4. ``per_step_metrics(truth, estimate, sensor)`` per variant, ``metric_units(names)``, then
-   ``extra_summary(...)`` for summary rows beyond the per-window means.
+4. ``per_step_metrics(truth, estimate, sensor)`` per variant, then ``extra_summary(...)`` for
+   summary rows beyond the per-window means. Every metric name is in the registry
+   (``pipeline.metrics``: unit, aggregation, label, printed digits, dof); a study registers its
+   own names when its module is imported.
 5. ``record(path, inputs)``: the Rerun recording of the runs in ``inputs.record_runs``.
 
 A study is a config node (``study: {_target_: ...}``); an experiment without one gets
@@ -27,7 +29,7 @@ from __future__ import annotations
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, ClassVar, Iterable, Mapping, Protocol, Sequence
+from typing import TYPE_CHECKING, Any, ClassVar, Mapping, Protocol, Sequence
 
 import numpy as np
 
@@ -117,10 +119,6 @@ class Study(ABC):
     @abstractmethod
     def per_step_metrics(self, truth: "Truth", estimate: Any, sensor: Any) -> dict[str, np.ndarray]:
         """metric name -> (K,) values over the truth's steps (means over runs)."""
-
-    def metric_units(self, names: Iterable[str]) -> dict[str, str]:
-        """Units of this study's own metric names (the generic ones are pipeline.evaluate's)."""
-        return {}
 
     def extra_summary(self, truth: "Truth", estimates: Mapping[str, Any], display: Mapping[str, str], runs: int,
                       reference: str | None, sensor: Any,

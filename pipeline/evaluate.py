@@ -14,25 +14,9 @@ import polars as pl
 
 from filters.base import TrackEstimate
 from pipeline.data import Truth
+from pipeline.metrics import is_count, nees, unit_of
 
 AXES = ("x", "y", "z")
-_COUNT = "count: sum over runs (and, in the summary, over the window's steps)"
-UNITS = {
-    "acceleration_rmse_x": "m/s^2", "acceleration_rmse_y": "m/s^2", "acceleration_rmse_z": "m/s^2",
-    "acceleration_rmse": "m/s^2", "position_rmse": "m", "velocity_rmse": "m/s", "nees": "1 (chi2 dof = n)",
-    "nees_lower": "1 (95 % chi2 band of the run average)", "nees_upper": "1 (95 % chi2 band of the run average)",
-    "nis": "1 (chi2 dof = measurement size)", "nis_lower": "1 (95 % chi2 band of the run average)",
-    "nis_upper": "1 (95 % chi2 band of the run average)",
-    "models_evaluated": "models/step", "input_level_x": "m/s^2", "input_level_y": "m/s^2",
-    "input_level_z": "m/s^2", "detections": _COUNT, "detections_axis_x": _COUNT, "detections_axis_y": _COUNT,
-    "detections_axis_z": _COUNT, "compute_seconds": "s", "compute_pct_of_reference": "%",
-    "models_pct_of_reference": "%", "group_reached_fraction": "fraction of runs",
-}
-# Per-step metrics that are counts (summed over runs at each step): a summary window SUMS them over
-# its steps; every other per-step metric is AVERAGED over the window's steps.
-COUNT_METRICS = frozenset({"detections", "detections_axis_x", "detections_axis_y", "detections_axis_z"})
-
-
 @dataclass(frozen=True)
 class Window:
     name: str
@@ -83,11 +67,8 @@ def per_step_metrics(truth: Truth, estimate: TrackEstimate) -> dict[str, np.ndar
             for i in range(min(acc_err.shape[-1], len(AXES))):
                 out[f"acceleration_rmse_{AXES[i]}"] = _rmse(acc_err[..., i:i + 1])
         started = np.isfinite(estimate.state).all(axis=-1)
-        P = np.where(started[..., None, None], estimate.covariance, np.eye(err.shape[-1]))
-        e = np.where(started[..., None], err, 0.0)
-        nees = np.einsum("rki,rki->rk", e, np.linalg.solve(P, e[..., None])[..., 0])
         # the run average with its 95 % chi-square band (n dof per valid run)
-        out.update(consistency_metrics("nees", np.where(started, nees, np.nan), err.shape[-1]))
+        out.update(consistency_metrics("nees", nees(err, estimate.covariance), err.shape[-1]))
         out.update(nis_metrics(extras))
         if "models_evaluated" in extras:
             evaluated = extras["models_evaluated"].astype(float)
@@ -198,7 +179,7 @@ def window_value(metric: str, values: np.ndarray, w: Window) -> float:
     segment = values[w.first_step: w.last_step + 1]
     if not segment.size:
         return float("nan")
-    if metric in COUNT_METRICS:
+    if is_count(metric):
         return float(np.nansum(segment))
     with _quiet_nanmean():
         return float(np.nanmean(segment))
@@ -206,18 +187,17 @@ def window_value(metric: str, values: np.ndarray, w: Window) -> float:
 
 def summary_rows(variants: Mapping[str, tuple[str, dict[str, np.ndarray]]], estimates: Mapping[str, TrackEstimate],
                  windows: Sequence[Window], reference_key: str | None, runs: int,
-                 reached: tuple[str, int, int] | None = None, count_windows: Sequence[Window] = (),
-                 units: Mapping[str, str] | None = None) -> pl.DataFrame:
-    """Per variant: each per-step metric over each window (averaged; counts summed, see COUNT_METRICS),
-    the count metrics also over each of ``count_windows``, compute time, models per step (and both as %
-    of the reference variant), and optionally the fraction of runs reaching a group. ``units`` adds
-    units for metric names a study defines beyond ``UNITS``."""
+                 reached: tuple[str, int, int] | None = None, count_windows: Sequence[Window] = ()
+                 ) -> pl.DataFrame:
+    """Per variant: each per-step metric over each window (averaged; counts summed: the registry's
+    aggregation, pipeline.metrics), the count metrics also over each of ``count_windows``, compute
+    time, models per step (and both as % of the reference variant), and optionally the fraction of
+    runs reaching a group. Units come from the metric registry."""
     rows: list[dict] = []
-    unit_of = {**UNITS, **(units or {})}
 
     def add(key, display, metric, window, value):
         rows.append({"variant": display, "variant_key": key, "metric": metric, "window": window,
-                     "value": None if value is None else float(value), "unit": unit_of.get(metric, ""),
+                     "value": None if value is None else float(value), "unit": unit_of(metric),
                      "n_runs": runs})
 
     for key, (display, metrics) in variants.items():
@@ -226,7 +206,7 @@ def summary_rows(variants: Mapping[str, tuple[str, dict[str, np.ndarray]]], esti
                 add(key, display, metric, w.name, window_value(metric, values, w))
         for w in count_windows:
             for metric, values in metrics.items():
-                if metric in COUNT_METRICS:
+                if is_count(metric):
                     add(key, display, metric, w.name, window_value(metric, values, w))
         add(key, display, "compute_seconds", None, estimates[key].compute_seconds)
         if reached is not None:

@@ -23,6 +23,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from pipeline.metrics import Metric, nees, register
+
 FAULTS = {"nonfinite": 1, "asymmetric": 2, "not_positive_definite": 4, "nees_above_bound": 8,
           "weights_underflow": 16}
 
@@ -78,8 +80,8 @@ def fault_flags(state: np.ndarray, covariance: np.ndarray, checks: FaultChecks =
     if checks.nees_bound is not None and error is not None:
         e = np.where(finite[..., None] & estimated, np.asarray(error, dtype=float), 0.0)
         with np.errstate(all="ignore"):
-            nees = np.einsum("...i,...i->...", e, _solve(P, e))
-        flags |= np.where(finite & ~(nees <= checks.nees_bound), FAULTS["nees_above_bound"], 0).astype(np.uint8)
+            value = nees(e, P)
+        flags |= np.where(finite & ~(value <= checks.nees_bound), FAULTS["nees_above_bound"], 0).astype(np.uint8)
     if weights_underflow is not None:
         flags |= np.where(np.asarray(weights_underflow, dtype=bool), FAULTS["weights_underflow"], 0).astype(np.uint8)
     while flags.ndim > 2:                      # targets etc.: a step is faulty if any of them is
@@ -96,13 +98,6 @@ def _positive_definite(P: np.ndarray) -> np.ndarray:
         return np.linalg.eigvalsh(P).min(axis=-1) > 0
 
 
-def _solve(P: np.ndarray, e: np.ndarray) -> np.ndarray:
-    try:
-        return np.linalg.solve(P, e[..., None])[..., 0]
-    except np.linalg.LinAlgError:           # a singular covariance (flagged not_positive_definite)
-        return (np.linalg.pinv(P) @ e[..., None])[..., 0]
-
-
 def fault_summary(flags: np.ndarray) -> dict[str, int]:
     """Runs with any fault (``diverged_runs``) and runs with each fault (``fault_runs_<name>``)."""
     flags = np.asarray(flags, dtype=np.uint8)
@@ -111,6 +106,9 @@ def fault_summary(flags: np.ndarray) -> dict[str, int]:
     for name, bit in FAULTS.items():
         out[f"fault_runs_{name}"] = int(((per_run & bit) != 0).sum())
     return out
+
+
+register(Metric("diverged_runs", "runs"), *(Metric(f"fault_runs_{name}", "runs") for name in FAULTS))
 
 
 def describe(mask: int) -> list[str]:

@@ -55,6 +55,7 @@ from typing import TYPE_CHECKING, Mapping, Sequence
 import numpy as np
 
 from filters.base import TrackEstimate
+from pipeline.metrics import axis_unit_of
 from pipeline.data import Detections, Truth
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -64,9 +65,7 @@ APPLICATION_ID = "mtt"
 ELLIPSE_POINTS = 48
 ELLIPSE_SIGMA = 2.0
 SPATIAL_METRICS = ("acceleration_rmse_x", "acceleration_rmse_y", "position_rmse")
-_UNITS = {"acceleration_rmse_x": "m/s²", "acceleration_rmse_y": "m/s²", "position_rmse": "m",
-          "velocity_rmse": "m/s", "nees": "-", "nis": "-", "models_evaluated": "models/step",
-          "acceleration_rmse": "m/s²", "detections": "count"}
+# a metric view is titled "<name> [<axis unit>]" from the metric registry (pipeline.metrics)
 
 # One colour per variant, in display order, used in every view (tracks, estimates, metric lines).
 _VARIANT_COLOURS = [(31, 119, 255), (255, 127, 14), (44, 200, 80), (214, 39, 40), (160, 103, 219),
@@ -519,7 +518,7 @@ def _blueprint(rrb, truth: Truth, truth_xy: list[int], record_runs: list[int], v
     present = [m for m in SPATIAL_METRICS if any(mk == m for mk, _ in metric_series)]
     if present:
         rows.append(rrb.Horizontal(*[
-            rrb.TimeSeriesView(origin=f"/metrics/{_path_part(m)}", name=f"{m} [{_UNITS.get(m, '')}]",
+            rrb.TimeSeriesView(origin=f"/metrics/{_path_part(m)}", name=f"{m} [{axis_unit_of(m)}]",
                                axis_x=whole_run, plot_legend=rrb.PlotLegend(corner="RightTop"))
             for m in present]))
         shares.append(2.5)
@@ -941,7 +940,7 @@ def _blueprint_3d(rrb, truth: Truth, t_xyz: list[int], origin: np.ndarray, recor
                                                       end=rrb.TimeRangeBoundary.infinite()))
     legend = rrb.PlotLegend(corner="RightTop")
     present = {m for m, _ in metric_series}
-    plots = [rrb.TimeSeriesView(origin=f"/metrics/{m}", name=f"{m} [{_UNITS.get(m, '')}]", axis_x=whole_run,
+    plots = [rrb.TimeSeriesView(origin=f"/metrics/{m}", name=f"{m} [{axis_unit_of(m)}]", axis_x=whole_run,
                                 plot_legend=legend) for m in RMSE_METRICS_3D if m in present]
     if "detections" in present:
         plots.append(rrb.TimeSeriesView(origin="/metrics/detections", name="maneuver detections per step (all runs)",

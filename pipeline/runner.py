@@ -27,6 +27,7 @@ from pipeline.config import build, flatten, selected_variants, validate
 from pipeline.errors import ConfigError
 from pipeline.evaluate import Window, metrics_frame, summary_rows
 from pipeline.faults import FaultChecks, fault_summary
+from pipeline.metrics import unit_of
 from pipeline.tables import ReportContext, format_summary
 from pipeline.track import SingleTargetStudy, filter_runs, flags_from_table, with_fault_flags
 from pipeline.store import StageCache, atomic_write_parquet, atomic_write_text, package_version, publish, stable_hash, stage_key
@@ -343,7 +344,6 @@ def evaluate_stage(cfg: DictConfig, study: Study, sensor: Any, truth: Any, estim
     variants = list(estimates)
     K = truth.time.size
     per_variant = {v: (display[v], study.per_step_metrics(truth, estimates[v], sensor)) for v in variants}
-    units = study.metric_units({m for _, metrics in per_variant.values() for m in metrics})
     windows = _windows(cfg, "windows", K)
     count_windows = _windows(cfg, "count_windows", K)
     reached = None
@@ -352,12 +352,12 @@ def evaluate_stage(cfg: DictConfig, study: Study, sensor: Any, truth: Any, estim
         reached = (str(gr.group), list(cfg.models.groups.keys()).index(gr.group), int(gr.by_step))
     ref = cfg.metrics.get("reference_variant")
     summary = summary_rows(per_variant, estimates, windows, ref if ref in variants else None, runs, reached,
-                           count_windows, units)
+                           count_windows)
     rows = study.extra_summary(truth, estimates, display, runs, ref if ref in variants else None, sensor, per_variant)
     if rows:
         summary = pl.concat([summary, pl.DataFrame(rows, schema=summary.schema)])
     fault_rows = [{"variant": display[v], "variant_key": v, "metric": name, "window": None, "value": float(count),
-                   "unit": "runs", "n_runs": runs} for v in variants for name, count in faults[v].items()]
+                   "unit": unit_of(name), "n_runs": runs} for v in variants for name, count in faults[v].items()]
     summary = pl.concat([summary, pl.DataFrame(fault_rows, schema=summary.schema)])
     return metrics_frame(truth.time, per_variant, runs), summary
 

@@ -19,19 +19,11 @@ from typing import Any, Mapping, Protocol, Sequence
 import numpy as np
 import polars as pl
 
-SHOWN = [("acceleration_rmse_x", "acc RMSE X"), ("acceleration_rmse_y", "acc RMSE Y"),
-         ("acceleration_rmse_z", "acc RMSE Z"), ("acceleration_rmse", "acc RMSE"), ("position_rmse", "pos RMSE"),
-         ("velocity_rmse", "vel RMSE"), ("nees", "NEES"), ("models_evaluated", "models/step"),
-         ("models_pct_of_reference", "models %"), ("group_reached_fraction", "reached"),
-         ("detections", "detections"), ("detections_axis_x", "det x"), ("detections_axis_y", "det y"),
-         ("detections_axis_z", "det z"),
-         ("compute_seconds", "compute s"), ("compute_pct_of_reference", "compute %")]
-_COUNTS = {"detections", "detections_axis_x", "detections_axis_y", "detections_axis_z"}
-
+from pipeline.metrics import format_value, printed_columns
 
 def format_summary(summary: pl.DataFrame, experiment: str, runs: int) -> str:
     """Variant x metric table, one block per window (window-free metrics shown in every block)."""
-    shown = {m for m, _ in SHOWN}
+    shown = {m for m, _ in printed_columns(set(summary["metric"].unique().to_list()))}
     windows = [w for w in summary.filter(pl.col("metric").is_in(shown))["window"].unique(maintain_order=True).to_list()
                if w is not None and " by step " not in w]
     variants = summary["variant"].unique(maintain_order=True).to_list()
@@ -39,14 +31,14 @@ def format_summary(summary: pl.DataFrame, experiment: str, runs: int) -> str:
     for window in windows or [None]:
         in_window = pl.lit(False) if window is None else pl.col("window") == window
         rows = summary.filter(pl.col("window").is_null() | in_window | pl.col("window").str.contains(" by step "))
-        cols = [(m, label) for m, label in SHOWN if m in rows["metric"].to_list()]
+        cols = printed_columns(rows["metric"].to_list())       # the registry's labels, in its order
         header = ["variant"] + [label for _, label in cols]
         table = [header]
         for v in variants:
             row = [v]
             for m, _ in cols:
                 hit = rows.filter((pl.col("variant") == v) & (pl.col("metric") == m))["value"]
-                row.append("" if hit.len() == 0 or hit[0] is None else _fmt(m, hit[0]))
+                row.append("" if hit.len() == 0 or hit[0] is None else format_value(m, hit[0]))
             table.append(row)
         widths = [max(len(r[i]) for r in table) for i in range(len(header))]
         lines.append("")
@@ -56,18 +48,6 @@ def format_summary(summary: pl.DataFrame, experiment: str, runs: int) -> str:
             if i == 0:
                 lines.append("  ".join("-" * w for w in widths))
     return "\n".join(lines)
-
-
-def _fmt(metric: str, value: float) -> str:
-    if metric in _COUNTS:
-        return "" if math.isnan(value) else f"{value:.0f}"
-    if metric.endswith("pct_of_reference"):
-        return f"{value:.1f}"
-    if metric == "compute_seconds":
-        return f"{value:.3f}"
-    if metric == "group_reached_fraction":
-        return f"{value:.2f}"
-    return f"{value:.2f}"
 
 
 # ---- study-specific tables ---------------------------------------------------------------------

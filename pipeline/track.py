@@ -64,10 +64,6 @@ class SingleTargetStudy(Study):
         out = per_step_metrics(truth, estimate)
         return out | bound_metrics(self.bound, truth, sensor, out["position_rmse"])
 
-    def metric_units(self, names) -> dict[str, str]:
-        from pipeline.bounds import UNITS
-        return {n: UNITS[n] for n in names if n in UNITS}      # evaluate.UNITS knows the generic names
-
     def record(self, path, inputs: RecordingInputs) -> None:
         from pipeline.recording import write_recording
         # a sensor with a position (e.g. the 3-D radar: polar detections relative to it) tells the

@@ -24,6 +24,7 @@ import numpy as np
 
 from filters.bias import BIAS_NAMES, BIAS_UNITS, BiasRegistrationResult, RadarReports, TrackStart
 from pipeline.contract import RecordingInputs, Study
+from pipeline.metrics import BAND, Metric, lookup, nees, register, register_family, unit_of
 from pipeline.studies.async_bias.codec import bias_estimates_from_frame, bias_estimates_to_frame
 from pipeline.data import Detections, Truth
 from pipeline.errors import ConfigError
@@ -135,10 +136,6 @@ class BiasRegistrationStudy(Study):
         """The metrics against the radars' true biases (``sensor.true_bias_vector()``)."""
         return bias_study_metrics(truth, result, np.asarray(sensor.true_bias_vector(), dtype=float))
 
-    @staticmethod
-    def metric_units(names) -> dict[str, str]:
-        return bias_metric_units(sorted(names))
-
     # ---- record ----------------------------------------------------------------------------
     def record(self, path, inputs: RecordingInputs) -> None:
         from pipeline.studies.async_bias.recording import write_bias_recording
@@ -176,12 +173,12 @@ def bias_study_metrics(truth: Truth, result: BiasRegistrationResult, true_bias: 
                     j = 4 * s + c
                     # before the first report the estimate is the prior mean 0
                     out[f"bias_rmse_{name}_s{s + 1}"] = on_grid(rmse[:, j], prior=abs(true_bias[j]))
-            band = consistency_metrics("bias_nees", _nees(err, result.bias_covariance), err.shape[-1])
+            band = consistency_metrics("bias_nees", nees(err, result.bias_covariance), err.shape[-1])
             out.update({name: on_grid(values) for name, values in band.items()})          # 95 % band, 4S dof
             for s in range(S):
                 block = slice(4 * s, 4 * s + 4)
                 out[f"bias_nees_s{s + 1}"] = on_grid(
-                    np.mean(_nees(err[..., block], result.bias_covariance[..., block, block]), axis=0))
+                    np.mean(nees(err[..., block], result.bias_covariance[..., block, block]), axis=0))
         truth_at = truth.state[:, steps][:, :, result.targets]              # (R, K, Tsel, 4)
         for s in range(S):
             mine = np.nonzero(result.sensor == s)[0]
@@ -196,7 +193,7 @@ def bias_study_metrics(truth: Truth, result: BiasRegistrationResult, true_bias: 
                     out[f"velocity_rmse_{label}{kind}"] = on_grid(np.sqrt(np.nanmean(np.sum(e[..., 2:]**2, -1), 0)), mine)
                 e = result.compensated_state[:, mine, col] - true_state
                 out[f"track_nees_{label}_compensated"] = on_grid(
-                    np.nanmean(_nees(e, result.compensated_covariance[:, mine, col]), axis=0), mine)
+                    np.nanmean(nees(e, result.compensated_covariance[:, mine, col]), axis=0), mine)
         if result.nis is not None and result.nis_dof is not None:
             for s in range(S):
                 mine = np.nonzero(result.sensor == s)[0]
@@ -225,33 +222,19 @@ def target_mean_nis(name: str, nis_sum: np.ndarray, dof: np.ndarray) -> dict[str
     return {key: np.where(ok, values / np.where(ok, targets_per_run, 1.0), np.nan) for key, values in band.items()}
 
 
-def _nees(err: np.ndarray, covariance: np.ndarray) -> np.ndarray:
-    ok = np.isfinite(err).all(-1) & np.isfinite(covariance).all((-1, -2))
-    P = np.where(ok[..., None, None], covariance, np.eye(err.shape[-1]))
-    e = np.where(ok[..., None], err, 0.0)
-    value = np.einsum("...i,...i->...", e, np.linalg.solve(P, e[..., None])[..., 0])
-    return np.where(ok, value, np.nan)
+# the study's metric families (radar n, target m), pipeline.metrics
+register(Metric("bias_nees", "1 (chi2 dof = 4 per radar)", "-", dof="4 per radar"),
+         Metric("bias_nees_lower", BAND, "-"), Metric("bias_nees_upper", BAND, "-"))
+register_family(r"bias_rmse_(?P<component>[a-z_]+)_s\d+",
+                lambda m: Metric("", BIAS_UNITS[BIAS_NAMES.index(m["component"])]))
+register_family(r"bias_nees_s\d+", lambda m: Metric("", "1 (chi2 dof = 4 per radar)", "-", dof=4))
+register_family(r"track_nees_s\d+_t\d+_compensated", lambda m: Metric("", "1 (chi2 dof = 4)", "-", dof=4))
+register_family(r"nis_s\d+_(lower|upper)", lambda m: Metric("", "1 (95 % chi2 band of the run and target average)", "-"))
+register_family(r"nis_s\d+", lambda m: Metric("", "1 (per-target mean of chi2 dof = 2; expected 2)", "-", dof=2))
+register_family(r"position_rmse_s\d+_t\d+(_compensated)?", lambda m: Metric("", "m"))
+register_family(r"velocity_rmse_s\d+_t\d+(_compensated)?", lambda m: Metric("", "m/s"))
 
 
 def bias_metric_units(names: Sequence[str]) -> dict[str, str]:
-    """Units of the study's metric names, for the summary table."""
-    units = {}
-    for name in names:
-        if name.startswith("bias_rmse_"):
-            component = name[len("bias_rmse_"):].rsplit("_s", 1)[0]
-            units[name] = BIAS_UNITS[BIAS_NAMES.index(component)]
-        elif name in ("bias_nees_lower", "bias_nees_upper"):
-            units[name] = "1 (95 % chi2 band of the run average)"
-        elif name.startswith("bias_nees"):
-            units[name] = "1 (chi2 dof = 4 per radar)"
-        elif name.startswith("track_nees"):
-            units[name] = "1 (chi2 dof = 4)"
-        elif name.startswith("nis_s") and name.endswith(("_lower", "_upper")):
-            units[name] = "1 (95 % chi2 band of the run and target average)"
-        elif name.startswith("nis_s"):
-            units[name] = "1 (per-target mean of chi2 dof = 2; expected 2)"
-        elif name.startswith("position_rmse"):
-            units[name] = "m"
-        elif name.startswith("velocity_rmse"):
-            units[name] = "m/s"
-    return units
+    """Units of the study's metric names (from the registry)."""
+    return {name: unit_of(name) for name in names if lookup(name) is not None}

@@ -53,10 +53,11 @@ from typing import TYPE_CHECKING, Mapping, Sequence
 import numpy as np
 
 from filters.base import TrackEstimate
+from pipeline.metrics import axis_unit_of
 from pipeline.data import Detections, Truth
 from pipeline.recording import (log_north_up, _atomic_recording, checked_record_runs, _ellipses, _FRAMES, _log_config,
     _log_metric_series, _metric_series, NORTH_UP_FRAME, _path_part, _PATH_SAFE, target_frame, _time_columns,
-    _TRUTH_COLOUR, _UNITS, variant_colour, _xy_index)
+    _TRUTH_COLOUR, variant_colour, _xy_index)
 
 if TYPE_CHECKING:  # pragma: no cover
     import polars as pl
@@ -78,7 +79,6 @@ _OWNSHIP_COLOUR = (255, 215, 0)
 _BEARING_COLOUR = (150, 150, 150, 150)
 _FIX_COLOUR = (255, 110, 220)
 _MODE_COLOURS = {ACTIVE: 0xFF6EDCFF, PASSIVE: 0x5A6E8CFF}
-_UNITS_SONAR = {**_UNITS, "position_rmse_x": "m", "position_rmse_y": "m"}
 
 
 def sonar_mode(detections: Detections) -> np.ndarray:
@@ -379,7 +379,7 @@ def _sonar_blueprint(rrb, record_runs: list[int], variant_keys: list[str], displ
     tabs = []
     for m in TIME_SERIES_METRICS[1:]:
         if m in present:
-            title = _VIEW_TITLES.get(m, f"{m} [{_UNITS_SONAR.get(m, '')}]")
+            title = _VIEW_TITLES.get(m, f"{m} [{axis_unit_of(m)}]")
             tabs.append(rrb.TimeSeriesView(origin=f"/metrics/{_path_part(m)}", axis_x=whole_run, plot_legend=legend,
                                            name=f"{title} (all runs)"))
     be = rrb.encodings

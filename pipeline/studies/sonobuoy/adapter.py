@@ -25,23 +25,21 @@ import numpy as np
 from filters.particle import NOISE_GAINS, STATE_NAMES, BuoyReports, MultipleModelParticleFilter
 from pipeline import schemas
 from pipeline.contract import RecordingInputs, Study
+from pipeline.metrics import BAND, Metric, nees, register, unit_of
 from pipeline.data import Detections, Truth
 from pipeline.errors import ConfigError
 from pipeline.seeding import run_generators
 from pipeline.bounds import PerTruth
 from pipeline.evaluate import _quiet_nanmean, consistency_metrics, nis_metrics
 
-UNITS = {"position_rmse": "m", "position_median_error": "m", "buoy_position_rmse": "m", "buoy_position_median_error": "m",
-         "nees_position": "1 (chi2 dof = 2)", "nees_position_lower": "1 (95 % chi2 band of the run average)",
-         "nees_position_upper": "1 (95 % chi2 band of the run average)", "nees_position_median": "1 (chi2 dof = 2: median 1.39)", "ess": "particles", "mode_probability_cv": "probability",
-         "mode_probability_ccw": "probability", "mode_probability_cw": "probability",
-         "nis": "1 (chi2 dof = received bearings)", "nis_lower": "1 (95 % chi2 band of the run average)",
-         "nis_upper": "1 (95 % chi2 band of the run average)",
-         "position_bound": "m (sqrt trace of the clairvoyant PCRLB target position block, clutter ignored)",
-         "position_bound_model": "m (the same with the filters' target process noise)",
-         "position_rmse_over_bound": "ratio (position RMSE / sqrt(PCRLB))",
-         "position_rmse_over_bound_model": "ratio (position RMSE / sqrt(PCRLB) with the filters' target noise)",
-         "track_loss_rate": "fraction of runs", "final_position_rmse": "m", "peak_median_error": "m"}
+register(
+    Metric("position_median_error", "m"), Metric("buoy_position_rmse", "m"), Metric("buoy_position_median_error", "m"),
+    Metric("nees_position", "1 (chi2 dof = 2)", "-", dof=2), Metric("nees_position_lower", BAND, "-"),
+    Metric("nees_position_upper", BAND, "-"), Metric("nees_position_median", "1 (chi2 dof = 2: median 1.39)", "-", dof=2),
+    Metric("ess", "particles"), Metric("mode_probability_cv", "probability"),
+    Metric("mode_probability_ccw", "probability"), Metric("mode_probability_cw", "probability"),
+    Metric("track_loss_rate", "fraction of runs"), Metric("final_position_rmse", "m"), Metric("peak_median_error", "m"),
+)
 MODE_NAMES = ("cv", "ccw", "cw")
 
 
@@ -133,15 +131,12 @@ class SonobuoyStudy(Study):
                                                              .transpose(0, 2, 1).reshape(-1, error.shape[1]), axis=0)
             e = estimate.state[..., 0:2] - true[..., 0:2]
             P = estimate.covariance[..., 0:2, 0:2]
-            ok = np.isfinite(e).all(-1) & np.isfinite(P).all((-1, -2))
-            P = np.where(ok[..., None, None], P, np.eye(2))
-            e = np.where(ok[..., None], e, 0.0)
-            nees = np.einsum("rki,rki->rk", e, np.linalg.solve(P, e[..., None])[..., 0])
+            position_nees = nees(e, P)
             # the run average with its 95 % chi-square band (2 dof per valid run)
-            out.update(consistency_metrics("nees_position", np.where(ok, nees, np.nan), 2))
+            out.update(consistency_metrics("nees_position", position_nees, 2))
             # the mean is what a consistency check reads, but one collapsed cloud (covariance of
             # centimetres, error of metres) dominates it: the median shows the typical run
-            out["nees_position_median"] = np.nanmedian(np.where(ok, nees, np.nan), axis=0)
+            out["nees_position_median"] = np.nanmedian(position_nees, axis=0)
             extras = estimate.extras
             out.update(nis_metrics(extras))
             if "ess" in extras:
@@ -207,17 +202,13 @@ class SonobuoyStudy(Study):
         bounds = posterior_crlb(F, Q, np.diag(self.prior_std**2), information)
         return np.sqrt(bounds[:, 0, 0] + bounds[:, 1, 1])
 
-    @staticmethod
-    def metric_units(names) -> dict[str, str]:
-        return {n: UNITS[n] for n in names if n in UNITS}
-
     def extra_summary(self, truth: Truth, estimates: dict, display: dict, runs: int, reference: str | None,
                       sensor, per_variant: dict) -> list[dict]:
         rows = []
 
         def add(key, metric, window, value):
             rows.append({"variant": display[key], "variant_key": key, "metric": metric, "window": window,
-                         "value": None if value is None else float(value), "unit": UNITS[metric], "n_runs": runs})
+                         "value": None if value is None else float(value), "unit": unit_of(metric), "n_runs": runs})
 
         time = truth.time
         for key, est in estimates.items():

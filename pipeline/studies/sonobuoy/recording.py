@@ -59,7 +59,8 @@ from pipeline.data import Detections, Truth
 from pipeline.recording import (log_north_up, _atomic_recording, checked_record_runs, _ellipses, _lighter,
     _log_config, _log_metric_series, _metric_series, NORTH_UP_FRAME, _path_part, _PATH_SAFE, _time_columns,
     _TRUTH_COLOUR, variant_colour, _xy_index)
-from pipeline.studies.sonobuoy.adapter import MODE_NAMES, UNITS
+from pipeline.metrics import axis_unit_of
+from pipeline.studies.sonobuoy.adapter import MODE_NAMES
 
 if TYPE_CHECKING:  # pragma: no cover
     import polars as pl
@@ -468,7 +469,7 @@ def _sonobuoy_blueprint(rrb, record_runs: list[int], variant_keys: list[str], di
                                             plot_legend=legend))
         else:
             plots.append(rrb.TimeSeriesView(origin=f"/metrics/{_path_part(m)}", axis_x=whole_run, plot_legend=legend,
-                                            name=f"{m} [{UNITS.get(m, '')}] (all runs)"))
+                                            name=f"{m} [{axis_unit_of(m)}] (all runs)"))
     if plots:
         rows.append(rrb.Horizontal(*plots))
         shares.append(2.4)

@@ -1,0 +1,155 @@
+"""The metric registry: one entry per metric name, read by the summary, the printed tables and the recordings.
+
+Each metric says its ``unit`` (the text of the summary's unit column), its ``axis_unit`` (short,
+for plot axes), how a summary window aggregates its per-step values (``mean`` over the window's
+steps, or ``sum`` for counts), a short ``label`` for the printed table (metrics without one are in
+the tables but not in the printed summary), how many significant ``digits`` to print (0.0023 m/s^2
+prints as 0.0023, never 0.00), and, for NEES / NIS, the chi-square degrees of freedom ``dof``.
+
+Shared metrics are registered here; a study registers its own in its package (at import, i.e.
+when its study node is built). A family of names (``bias_rmse_range_offset_s2``) is registered
+by a pattern. ``nees`` is the one normalised estimation error squared of the project.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from dataclasses import dataclass, replace
+from typing import Callable, Literal
+
+import numpy as np
+
+BAND = "1 (95 % chi2 band of the run average)"
+COUNT = "count: sum over runs (and, in the summary, over the window's steps)"
+
+
+@dataclass(frozen=True)
+class Metric:
+    name: str
+    unit: str
+    axis_unit: str = ""
+    aggregation: Literal["mean", "sum"] = "mean"
+    label: str | None = None          # column label of the printed summary; None: not printed there
+    digits: int = 3                   # significant digits when printed (at least two decimals above 1)
+    dof: int | str | None = None      # chi-square degrees of freedom (NEES / NIS), or how they are made
+    decimals: int | None = None       # fixed decimals instead of significant digits (percentages)
+
+
+_REGISTRY: dict[str, Metric] = {}
+_FAMILIES: list[tuple[re.Pattern[str], Callable[[re.Match[str]], Metric]]] = []
+_ORDER: list[str] = []                # registration order: the printed summary's column order
+
+
+def register(*metrics: Metric) -> None:
+    """Add metrics. A name has one definition in every study: registering it again with another
+    definition is refused (the summary's units must not depend on which study was imported first)."""
+    for metric in metrics:
+        known = _REGISTRY.get(metric.name)
+        if known is not None and known != metric:
+            raise ValueError(f"metric {metric.name!r} is already registered as {known}; one name, one meaning: "
+                             f"pick another name for {metric}")
+        if known is None:
+            _ORDER.append(metric.name)
+        _REGISTRY[metric.name] = metric
+
+
+def register_family(pattern: str, make: Callable[[re.Match[str]], Metric]) -> None:
+    """Names matching ``pattern`` (a full match) get ``make(match)``."""
+    _FAMILIES.append((re.compile(pattern), make))
+
+
+def lookup(name: str) -> Metric | None:
+    if name in _REGISTRY:
+        return _REGISTRY[name]
+    for pattern, make in _FAMILIES:
+        match = pattern.fullmatch(name)
+        if match:
+            return replace(make(match), name=name)
+    return None
+
+
+def unit_of(name: str) -> str:
+    metric = lookup(name)
+    return "" if metric is None else metric.unit
+
+
+def axis_unit_of(name: str) -> str:
+    metric = lookup(name)
+    return "" if metric is None else (metric.axis_unit or metric.unit)
+
+
+def is_count(name: str) -> bool:
+    metric = lookup(name)
+    return metric is not None and metric.aggregation == "sum"
+
+
+def printed_columns(names: set[str] | list[str]) -> list[tuple[str, str]]:
+    """(name, label) of the printed summary's columns among ``names``, in registration order."""
+    present = set(names)
+    return [(n, _REGISTRY[n].label) for n in _ORDER if n in present and _REGISTRY[n].label]
+
+
+def format_value(name: str, value: float | None) -> str:
+    """The printed form of a summary value: counts as integers, fixed decimals where the metric says,
+    else ``digits`` significant digits (and at least two decimals for values of 1 and above)."""
+    if value is None or (isinstance(value, float) and math.isnan(value)):
+        return ""
+    metric = lookup(name)
+    if metric is not None and metric.aggregation == "sum":
+        return f"{value:.0f}"
+    if metric is not None and metric.decimals is not None:
+        return f"{value:.{metric.decimals}f}"
+    digits = 3 if metric is None else metric.digits
+    if value == 0 or not math.isfinite(value):
+        return f"{value:.2f}"
+    if abs(value) >= 1:
+        return f"{value:.2f}"
+    exponent = math.floor(math.log10(abs(value)))
+    return f"{value:.{max(digits - 1 - exponent, 2)}f}"
+
+
+def nees(error: np.ndarray, covariance: np.ndarray) -> np.ndarray:
+    """Normalised estimation error squared e' P^-1 e of (..., n) errors with their (..., n, n)
+    covariances; NaN where either is not finite (no estimate yet). A singular covariance falls back
+    to the pseudo-inverse (such steps are flagged not_positive_definite by pipeline.faults)."""
+    ok = np.isfinite(error).all(-1) & np.isfinite(covariance).all((-1, -2))
+    P = np.where(ok[..., None, None], covariance, np.eye(error.shape[-1]))
+    e = np.where(ok[..., None], error, 0.0)
+    try:
+        solved = np.linalg.solve(P, e[..., None])[..., 0]
+    except np.linalg.LinAlgError:
+        solved = (np.linalg.pinv(P) @ e[..., None])[..., 0]
+    value = np.einsum("...i,...i->...", e, solved)
+    return np.where(ok, value, np.nan)
+
+
+# ---- the shared metrics (every study's tracks, the filters' extras, the runner's summary rows) -------
+register(
+    Metric("acceleration_rmse_x", "m/s^2", "m/s²", label="acc RMSE X"),
+    Metric("acceleration_rmse_y", "m/s^2", "m/s²", label="acc RMSE Y"),
+    Metric("acceleration_rmse_z", "m/s^2", "m/s²", label="acc RMSE Z"),
+    Metric("acceleration_rmse", "m/s^2", "m/s²", label="acc RMSE"),
+    Metric("position_rmse", "m", label="pos RMSE"),
+    Metric("velocity_rmse", "m/s", label="vel RMSE"),
+    Metric("nees", "1 (chi2 dof = n)", "-", label="NEES", dof="state size"),
+    Metric("models_evaluated", "models/step", label="models/step"),
+    Metric("models_pct_of_reference", "%", label="models %", decimals=1),
+    Metric("group_reached_fraction", "fraction of runs", label="reached"),
+    Metric("detections", COUNT, "count", aggregation="sum", label="detections"),
+    Metric("detections_axis_x", COUNT, "count", aggregation="sum", label="det x"),
+    Metric("detections_axis_y", COUNT, "count", aggregation="sum", label="det y"),
+    Metric("detections_axis_z", COUNT, "count", aggregation="sum", label="det z"),
+    Metric("compute_seconds", "s", label="compute s"),
+    Metric("compute_pct_of_reference", "%", label="compute %", decimals=1),
+    Metric("nees_lower", BAND, "-"), Metric("nees_upper", BAND, "-"),
+    Metric("nis", "1 (chi2 dof = measurement size)", "-", dof="measurement size"),
+    Metric("nis_lower", BAND, "-"), Metric("nis_upper", BAND, "-"),
+    Metric("input_level_x", "m/s^2", "m/s²"), Metric("input_level_y", "m/s^2", "m/s²"),
+    Metric("input_level_z", "m/s^2", "m/s²"),
+    Metric("position_bound", "m (sqrt trace of the PCRLB position block; the bound node says of which model)", "m"),
+    Metric("position_rmse_over_bound", "ratio (position RMSE / sqrt(PCRLB); 1 = at the bound)", "ratio"),
+    Metric("position_bound_model", "m (sqrt trace of the PCRLB position block under the filters' own motion model)",
+           "m"),
+    Metric("position_rmse_over_bound_model", "ratio (position RMSE / sqrt(PCRLB of the filters' own model))", "ratio"),
+)

@@ -1,0 +1,56 @@
+"""The metric registry (pipeline.metrics): one definition per name, read by the summary, the printed
+tables and the recordings; one nees()."""
+
+from __future__ import annotations
+
+import numpy as np
+import polars as pl
+import pytest
+
+from pipeline import metrics
+from pipeline.metrics import Metric, format_value, lookup, nees, register
+from tests.test_pipeline import run_in_process
+
+SHORT = {"ao_vsimm_s2": [], "mie_los": [], "async_bias": ["scenario.duration=20"],
+         "sonar_case2": ["scenario.duration=1200", "sensors.active_intervals=[[0,300],[600,700]]"],
+         "sonobuoy_case2": ["scenario.duration=100", "target_model.particles=100"]}
+
+
+def test_small_values_keep_their_significant_digits():
+    """0.0023 m/s^2 printed as 0.00 said 'zero' (the printed table used two decimals for everything)."""
+    assert format_value("acceleration_rmse", 0.0023) == "0.00230"
+    assert format_value("position_rmse", 46.6712) == "46.67"
+    assert format_value("compute_seconds", 0.0749) == "0.0749"
+    assert format_value("detections", 13.0) == "13"
+    assert format_value("compute_pct_of_reference", 56.54) == "56.5"
+    assert format_value("nees", float("nan")) == ""
+    assert format_value("an_unregistered_metric", 0.5) == "0.500"
+
+
+def test_a_name_has_one_meaning():
+    with pytest.raises(ValueError, match="one name, one meaning"):
+        register(Metric("position_rmse", "ft"))
+    register(Metric("position_rmse", "m", label="pos RMSE"))        # the same definition again is fine
+
+
+def test_count_metrics_are_summed_over_a_window_and_the_rest_averaged():
+    assert metrics.is_count("detections_axis_z") and not metrics.is_count("nees")
+
+
+def test_nees_by_hand():
+    error = np.array([[1.0, 2.0], [np.nan, 0.0], [3.0, 0.0]])
+    covariance = np.array([np.diag([1.0, 4.0]), np.eye(2), [[2.0, 0.0], [0.0, 0.0]]])
+    value = nees(error, covariance)
+    assert value[0] == pytest.approx(1.0 + 1.0)                 # 1^2/1 + 2^2/4
+    assert np.isnan(value[1])                                    # no estimate: NaN, not an error
+    assert value[2] == pytest.approx(9.0 / 2.0)                 # singular: the pseudo-inverse
+
+
+@pytest.mark.parametrize("experiment", sorted(SHORT))
+def test_every_metric_a_study_writes_is_registered_with_a_unit(tmp_path, experiment):
+    out, _ = run_in_process(tmp_path, "run", f"experiment={experiment}", "mc.runs=2", *SHORT[experiment])
+    names = set(out.metrics["metric"].unique().to_list()) | set(out.summary["metric"].unique().to_list())
+    unregistered = sorted(n for n in names if lookup(n) is None)
+    assert not unregistered, f"{experiment}: metrics without a registry entry: {unregistered}"
+    units = out.summary.filter(pl.col("unit") == "")["metric"].unique().to_list()
+    assert not units, f"{experiment}: summary rows without a unit: {units}"
