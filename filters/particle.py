@@ -54,6 +54,7 @@ from filters.kalman import einsum, rows_times
 
 TARGET_STATES = ("x", "y", "vx", "vy")
 BUOYS = 4
+MODE_NAMES = ("cv", "ccw", "cw")      # the jump-Markov modes in index order: CV, counter-clockwise, clockwise turn
 STATE_NAMES = TARGET_STATES + tuple(f"b{i}_{c}" for i in range(1, BUOYS + 1) for c in ("x", "y", "vx", "vy"))
 LOG_2PI = float(np.log(2.0 * np.pi))
 TWO_PI = 2.0 * np.pi

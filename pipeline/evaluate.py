@@ -56,7 +56,7 @@ def per_step_metrics(truth: Truth, estimate: TrackEstimate) -> dict[str, np.ndar
     acc = [names.index(n) for n in ("ax", "ay", "az") if n in names]
     extras = estimate.extras
     out: dict[str, np.ndarray] = {}
-    with np.errstate(invalid="ignore"), _quiet_nanmean():
+    with np.errstate(invalid="ignore"), quiet_nanmean():
         out["position_rmse"] = _rmse(err[..., pos])
         if vel:
             out["velocity_rmse"] = _rmse(err[..., vel])
@@ -142,7 +142,7 @@ def _count(flags: np.ndarray) -> np.ndarray:
     return np.sum((values != 0) & np.isfinite(values), axis=0).astype(float)
 
 
-def _quiet_nanmean() -> warnings.catch_warnings:
+def quiet_nanmean() -> warnings.catch_warnings:
     """All-NaN columns (steps before the first estimate) are expected: silence their warnings."""
     return warnings.catch_warnings(action="ignore", category=RuntimeWarning)
 
@@ -181,7 +181,7 @@ def window_value(metric: str, values: np.ndarray, w: Window) -> float:
         return float("nan")
     if is_count(metric):
         return float(np.nansum(segment))
-    with _quiet_nanmean():
+    with quiet_nanmean():
         return float(np.nanmean(segment))
 
 

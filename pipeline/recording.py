@@ -70,14 +70,14 @@ SPATIAL_METRICS = ("acceleration_rmse_x", "acceleration_rmse_y", "position_rmse"
 # One colour per variant, in display order, used in every view (tracks, estimates, metric lines).
 _VARIANT_COLOURS = [(31, 119, 255), (255, 127, 14), (44, 200, 80), (214, 39, 40), (160, 103, 219),
                     (23, 190, 207), (227, 119, 194), (188, 189, 34), (140, 86, 75), (127, 127, 127)]
-_TRUTH_COLOUR = (235, 235, 235)
+TRUTH_COLOUR = (235, 235, 235)
 _MEASUREMENT_COLOUR = (170, 170, 170)
 _CLUTTER_COLOUR = (220, 70, 70)
 _MEASUREMENT_FAINT = (95, 95, 95)
 _CLUTTER_FAINT = (120, 50, 50)
-_FRAMES = "/world/frames"
+FRAMES_PATH = "/world/frames"
 NORTH_UP_FRAME = "north_up"
-_PATH_SAFE = re.compile(r"^[A-Za-z0-9_.-]+$")
+PATH_SAFE = re.compile(r"^[A-Za-z0-9_.-]+$")
 
 
 def checked_record_runs(record_runs, runs: int) -> list[int]:
@@ -95,7 +95,7 @@ def checked_record_runs(record_runs, runs: int) -> list[int]:
 def log_north_up(rr, rec) -> None:
     """The "north_up" frame the 2-D views look from: Rerun draws 2-D y downwards (image
     convention), so the frame flips y and north is up."""
-    rec.log(f"{_FRAMES}/north_up", rr.Transform3D(scale=np.array([1.0, -1.0, 1.0]), parent_frame="tf#/world",
+    rec.log(f"{FRAMES_PATH}/north_up", rr.Transform3D(scale=np.array([1.0, -1.0, 1.0]), parent_frame="tf#/world",
                                                   child_frame=NORTH_UP_FRAME), static=True)
 
 
@@ -122,14 +122,14 @@ def _model_colour(i: int, n: int) -> tuple[int, int, int]:
     return int(r * 255), int(g * 255), int(b * 255)
 
 
-def _xy_index(names: Sequence[str], what: str) -> list[int]:
+def xy_index(names: Sequence[str], what: str) -> list[int]:
     missing = [c for c in ("x", "y") if c not in names]
     if missing:
         raise ValueError(f"{what}: state_names {list(names)} lack {missing}; the recording plots (x, y)")
     return [list(names).index("x"), list(names).index("y")]
 
 
-def _ellipses(mean: np.ndarray, cov: np.ndarray, n_sigma: float = ELLIPSE_SIGMA,
+def covariance_ellipses(mean: np.ndarray, cov: np.ndarray, n_sigma: float = ELLIPSE_SIGMA,
               points: int = ELLIPSE_POINTS) -> np.ndarray:
     """(N, 2) means and (N, 2, 2) covariances -> (N, points, 2) closed n-sigma ellipse polylines."""
     sym = 0.5 * (cov + np.swapaxes(cov, -1, -2))
@@ -181,7 +181,7 @@ def write_recording(path: Path, *, experiment: str, truth: Truth, detections: De
     R = truth.runs
     record_runs = checked_record_runs(record_runs, R)
     for key in estimates:
-        if not _PATH_SAFE.match(key):
+        if not PATH_SAFE.match(key):
             raise ValueError(f"variant key {key!r} is not path-safe (allowed: letters, digits, '_', '-', '.')")
     if detections.runs != R:
         raise ValueError(f"detections have {detections.runs} runs but the truth has {R}")
@@ -203,10 +203,10 @@ def write_recording(path: Path, *, experiment: str, truth: Truth, detections: De
                             display=display, colours=colours, metrics=metrics, record_runs=record_runs,
                             config_text=config_text, description=description, sensor_position=sensor_position)
         return
-    truth_xy = _xy_index(truth.state_names, "truth")
-    meas_xy = _xy_index(detections.measurement_names, "detections")
+    truth_xy = xy_index(truth.state_names, "truth")
+    meas_xy = xy_index(detections.measurement_names, "detections")
 
-    metric_series = _metric_series(metrics, experiment, variant_keys, display, colours)
+    metric_series = metric_time_series(metrics, experiment, variant_keys, display, colours)
 
     import rerun as rr  # lazily: ~0.6 s
     import rerun.blueprint as rrb
@@ -215,8 +215,8 @@ def write_recording(path: Path, *, experiment: str, truth: Truth, detections: De
                            estimates, has_config=True,
                            noise_sigma=_noise_sigma(detections, meas_xy, record_runs[0] if record_runs else 0))
 
-    with _atomic_recording(rr, path, experiment, blueprint) as rec:
-        times = _time_columns(rr)
+    with atomic_recording(rr, path, experiment, blueprint) as rec:
+        times = time_columns(rr)
 
         ui = rr.Radius.ui_points
         # Rerun's 2-D views draw y downwards (image convention). The views look at the data from
@@ -230,9 +230,9 @@ def write_recording(path: Path, *, experiment: str, truth: Truth, detections: De
             xy = truth.state[r][..., truth_xy]                                   # (K, T, 2)
             K, T = xy.shape[:2]
             strips = [xy[:, t][np.isfinite(xy[:, t]).all(-1)] for t in range(T)]
-            rec.log(f"{world}/truth", rr.LineStrips2D(strips, colors=_TRUTH_COLOUR, radii=ui(0.75),
+            rec.log(f"{world}/truth", rr.LineStrips2D(strips, colors=TRUTH_COLOUR, radii=ui(0.75),
                                                       draw_order=16.0), static=True)
-            rec.log(f"{world}/truth", rr.Points2D.from_fields(colors=_TRUTH_COLOUR, radii=ui(5.0),
+            rec.log(f"{world}/truth", rr.Points2D.from_fields(colors=TRUTH_COLOUR, radii=ui(5.0),
                                                               draw_order=30.0), static=True)
             ok = np.isfinite(xy).all(-1)                                          # (K, T)
             steps = np.nonzero(ok.any(-1))[0]
@@ -242,7 +242,7 @@ def write_recording(path: Path, *, experiment: str, truth: Truth, detections: De
             steps = np.nonzero(first)[0]
             if steps.size:
                 rec.send_columns(
-                    f"{_FRAMES}/target_run{r}", indexes=times(truth.time[steps], steps),
+                    f"{FRAMES_PATH}/target_run{r}", indexes=times(truth.time[steps], steps),
                     columns=rr.Transform3D.columns(
                         translation=np.c_[xy[steps, 0], np.zeros(steps.size)], scale=np.tile(flip, (steps.size, 1)),
                         parent_frame=["tf#/world"] * steps.size, child_frame=[target_frame(r)] * steps.size))
@@ -282,15 +282,15 @@ def write_recording(path: Path, *, experiment: str, truth: Truth, detections: De
                                                                           draw_order=35.0), static=True)
                 if steps.size:
                     rec.send_columns(f"{base}/covariance", indexes=times(est.time[steps], steps),
-                                     columns=rr.LineStrips2D.columns(strips=_ellipses(pos[good], P[good])))
+                                     columns=rr.LineStrips2D.columns(strips=covariance_ellipses(pos[good], P[good])))
 
                 _log_variant_run(rr, rec, times, key, r, est, model_names, group_names)
 
-        _log_metric_series(rr, rec, times, metric_series)
-        _log_config(rr, rec, experiment, description, config_text, record_runs, R)
+        log_metric_series(rr, rec, times, metric_series)
+        log_config(rr, rec, experiment, description, config_text, record_runs, R)
 
 
-def _time_columns(rr):
+def time_columns(rr):
     """times(t, steps) -> the ``time`` (duration, s) and ``step`` (sequence) index columns."""
     def times(t: np.ndarray, steps: np.ndarray) -> list:
         return [rr.TimeColumn("time", duration=np.asarray(t, dtype=np.float64)),
@@ -299,7 +299,7 @@ def _time_columns(rr):
 
 
 @contextmanager
-def _atomic_recording(rr, path: Path, experiment: str, blueprint):
+def atomic_recording(rr, path: Path, experiment: str, blueprint):
     """A recording stream saving to a hidden temporary file beside ``path``; on success the file is
     finalised and moved onto ``path``, on any error it is removed."""
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -322,7 +322,7 @@ def _atomic_recording(rr, path: Path, experiment: str, blueprint):
         raise
 
 
-def _log_metric_series(rr, rec, times, metric_series: dict) -> None:
+def log_metric_series(rr, rec, times, metric_series: dict) -> None:
     """Each metric under /metrics/<metric>/<variant>; a consistency band (``<m>_lower`` /
     ``<m>_upper``, evaluate.consistency_metrics) goes beside its metric, /metrics/<m>/<variant>_chi2_lower,
     as a thin line in the variant's lighter colour, so the NEES view shows each variant with its band."""
@@ -331,16 +331,16 @@ def _log_metric_series(rr, rec, times, metric_series: dict) -> None:
         steps, t, values, name, colour = series
         base, _, side = str(metric).rpartition("_")
         if side in ("lower", "upper") and base in metrics:
-            entity = f"/metrics/{_path_part(base)}/{key}_chi2_{side}"
-            style = rr.SeriesLines(names=f"{name}: χ² 95 % {side}", colors=_lighter(colour, 0.5), widths=1.0)
+            entity = f"/metrics/{path_part(base)}/{key}_chi2_{side}"
+            style = rr.SeriesLines(names=f"{name}: χ² 95 % {side}", colors=lighter_colour(colour, 0.5), widths=1.0)
         else:
-            entity = f"/metrics/{_path_part(metric)}/{key}"
+            entity = f"/metrics/{path_part(metric)}/{key}"
             style = rr.SeriesLines(names=name, colors=colour, widths=2.0)
         rec.log(entity, style, static=True)
         rec.send_columns(entity, indexes=times(t, steps), columns=rr.Scalars.columns(scalars=values))
 
 
-def _log_config(rr, rec, experiment: str, description: str, config_text: str, record_runs: list[int],
+def log_config(rr, rec, experiment: str, description: str, config_text: str, record_runs: list[int],
                 runs: int) -> None:
     doc = f"# {experiment}\n\n"
     if description:
@@ -362,7 +362,7 @@ def _noise_sigma(detections: Detections, meas_xy: list[int], run: int) -> float:
     return float(np.sqrt(np.median(var))) if var.size else float("nan")
 
 
-def _path_part(name: str) -> str:
+def path_part(name: str) -> str:
     return re.sub(r"[^A-Za-z0-9_.-]+", "_", str(name))
 
 
@@ -380,7 +380,7 @@ def _limit_views(rrb, present: set, whole_run) -> list:
             for metric, name in LIMIT_VIEWS if metric in present]
 
 
-def _metric_series(metrics, experiment: str, variant_keys: list[str], display: Mapping[str, str],
+def metric_time_series(metrics, experiment: str, variant_keys: list[str], display: Mapping[str, str],
                    colours: dict) -> dict:
     """(metric, variant_key) -> (steps, time, values, display name, colour), finite values only, in
     metric order of appearance and display order of variants (variants only in the frame come last)."""
@@ -409,7 +409,7 @@ def _metric_series(metrics, experiment: str, variant_keys: list[str], display: M
             rows = part.filter(pl.col("variant_key") == key).sort("step")
             if rows.height == 0:
                 continue
-            if not _PATH_SAFE.match(str(key)):
+            if not PATH_SAFE.match(str(key)):
                 raise ValueError(f"metrics: variant_key {key!r} is not path-safe")
             values = rows["value"].cast(pl.Float64).to_numpy()
             keep = np.isfinite(values)
@@ -445,7 +445,7 @@ def _log_variant_run(rr, rec, times, key: str, r: int, est: TrackEstimate,
         if len(names) != M:
             raise ValueError(f"model_names: {len(names)} names for {M} mode probabilities of {key!r}")
         for i, name in enumerate(names):
-            entity = f"{base}/mode_probability/{_path_part(name)}"
+            entity = f"{base}/mode_probability/{path_part(name)}"
             steps = np.nonzero(np.isfinite(mu[:, i]))[0]
             rec.log(entity, rr.SeriesLines(names=str(name), colors=_model_colour(i, M), widths=1.5), static=True)
             rec.send_columns(entity, indexes=times(t[steps], steps), columns=rr.Scalars.columns(scalars=mu[steps, i]))
@@ -518,7 +518,7 @@ def _blueprint(rrb, truth: Truth, truth_xy: list[int], record_runs: list[int], v
     present = [m for m in SPATIAL_METRICS if any(mk == m for mk, _ in metric_series)]
     if present:
         rows.append(rrb.Horizontal(*[
-            rrb.TimeSeriesView(origin=f"/metrics/{_path_part(m)}", name=f"{m} [{axis_unit_of(m)}]",
+            rrb.TimeSeriesView(origin=f"/metrics/{path_part(m)}", name=f"{m} [{axis_unit_of(m)}]",
                                axis_x=whole_run, plot_legend=rrb.PlotLegend(corner="RightTop"))
             for m in present]))
         shares.append(2.5)
@@ -661,7 +661,7 @@ def _los_axes(position: np.ndarray, origin: np.ndarray) -> np.ndarray:
                      np.stack([-ca * se, -sa * se, ce], -1)], -2)
 
 
-def _lighter(colour: tuple[int, int, int], amount: float = 0.45) -> tuple[int, int, int]:
+def lighter_colour(colour: tuple[int, int, int], amount: float = 0.45) -> tuple[int, int, int]:
     return tuple(int(round(c + (255 - c) * amount)) for c in colour)  # type: ignore[return-value]
 
 
@@ -712,7 +712,7 @@ def _styled_3d_metric_series(metric_series: dict) -> dict:
         m = _AXIS_METRIC.match(str(metric))
         if m:
             shade = {"x": 0.0, "y": 0.35, "z": 0.6}[m["axis"]]
-            name, colour = f"{name} · LOS {m['axis']}", _lighter(colour, shade)
+            name, colour = f"{name} · LOS {m['axis']}", lighter_colour(colour, shade)
         out[(metric, key)] = (steps, t, values, name, colour)
     return out
 
@@ -726,7 +726,7 @@ def _write_recording_3d(path: Path, *, experiment: str, truth: Truth, detections
     t_xyz = _xyz_index(truth.state_names, "truth")
     z_xyz, z_cov = _measurements_xyz(detections, origin)                       # (R, K, D, 3)
     variant_keys = list(estimates)
-    metric_series = _styled_3d_metric_series(_metric_series(metrics, experiment, variant_keys, display, colours))
+    metric_series = _styled_3d_metric_series(metric_time_series(metrics, experiment, variant_keys, display, colours))
     r0 = record_runs[0] if record_runs else 0
     sigma = _noise_sigma_3d(None if z_cov is None else z_cov[r0], np.asarray(detections.detected[r0]))
 
@@ -735,8 +735,8 @@ def _write_recording_3d(path: Path, *, experiment: str, truth: Truth, detections
 
     blueprint = _blueprint_3d(rrb, truth, t_xyz, origin, record_runs, estimates, display, metric_series, sigma)
 
-    with _atomic_recording(rr, path, experiment, blueprint) as rec:
-        times = _time_columns(rr)
+    with atomic_recording(rr, path, experiment, blueprint) as rec:
+        times = time_columns(rr)
         ui = rr.Radius.ui_points
         rec.log("/world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
         rec.log("/world/radar", rr.Points3D([origin], colors=_RADAR_COLOUR, radii=ui(7.0), labels="radar",
@@ -747,8 +747,8 @@ def _write_recording_3d(path: Path, *, experiment: str, truth: Truth, detections
             xyz = truth.state[r][..., t_xyz]                                     # (K, T, 3)
             T = xyz.shape[1]
             strips = [xyz[:, t][np.isfinite(xyz[:, t]).all(-1)] for t in range(T)]
-            rec.log(f"{world}/truth", rr.LineStrips3D(strips, colors=_TRUTH_COLOUR, radii=ui(1.0)), static=True)
-            rec.log(f"{world}/truth", rr.Points3D.from_fields(colors=_TRUTH_COLOUR, radii=ui(6.0)), static=True)
+            rec.log(f"{world}/truth", rr.LineStrips3D(strips, colors=TRUTH_COLOUR, radii=ui(1.0)), static=True)
+            rec.log(f"{world}/truth", rr.Points3D.from_fields(colors=TRUTH_COLOUR, radii=ui(6.0)), static=True)
             ok = np.isfinite(xyz).all(-1)                                        # (K, T)
             steps = np.nonzero(ok.any(-1))[0]
             rec.send_columns(f"{world}/truth", indexes=times(truth.time[steps], steps),
@@ -756,7 +756,7 @@ def _write_recording_3d(path: Path, *, experiment: str, truth: Truth, detections
             steps = np.nonzero(ok[:, 0])[0]                                      # follow target 0
             if steps.size:
                 rec.send_columns(
-                    f"{_FRAMES}/target_run{r}", indexes=times(truth.time[steps], steps),
+                    f"{FRAMES_PATH}/target_run{r}", indexes=times(truth.time[steps], steps),
                     columns=rr.Transform3D.columns(
                         translation=xyz[steps, 0], parent_frame=["tf#/world"] * steps.size,
                         child_frame=[target_frame(r)] * steps.size))
@@ -785,13 +785,13 @@ def _write_recording_3d(path: Path, *, experiment: str, truth: Truth, detections
                 for i, a in enumerate(AXES):
                     entity = f"/truth/run{r}/acceleration/{a}"
                     steps = np.nonzero(np.isfinite(acc[:, i]))[0]
-                    rec.log(entity, rr.SeriesLines(names=f"truth (run {r})", colors=_TRUTH_COLOUR, widths=1.5),
+                    rec.log(entity, rr.SeriesLines(names=f"truth (run {r})", colors=TRUTH_COLOUR, widths=1.5),
                             static=True)
                     rec.send_columns(entity, indexes=times(truth.time[steps], steps),
                                      columns=rr.Scalars.columns(scalars=acc[steps, i]))
 
-        _log_metric_series(rr, rec, times, metric_series)
-        _log_config(rr, rec, experiment, description, config_text, record_runs, R)
+        log_metric_series(rr, rec, times, metric_series)
+        log_config(rr, rec, experiment, description, config_text, record_runs, R)
 
 
 def _log_variant_3d(rr, rec, times, ui, key: str, r: int, est: TrackEstimate, t_xyz: list[int],
@@ -853,7 +853,7 @@ def _log_variant_3d(rr, rec, times, ui, key: str, r: int, est: TrackEstimate, t_
         for i, a in enumerate(AXES):
             entity = f"{series}/input_level/{a}"
             steps = np.nonzero(np.isfinite(u[:, i]))[0]
-            rec.log(entity, rr.SeriesLines(names=f"{name} (run {r})", colors=_lighter(colour), widths=1.0),
+            rec.log(entity, rr.SeriesLines(names=f"{name} (run {r})", colors=lighter_colour(colour), widths=1.0),
                     static=True)
             rec.send_columns(entity, indexes=times(t[steps], steps), columns=rr.Scalars.columns(scalars=u[steps, i]))
     if "test_statistic" in est.extras:

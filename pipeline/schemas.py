@@ -28,14 +28,14 @@ class TableError(ValueError):
     """A Parquet file that is not the table it claims to be."""
 
 
-def _grid(R: int, K: int, T: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def run_step_grid(R: int, K: int, T: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     run = np.repeat(np.arange(R, dtype=np.int32), K * T)
     step = np.tile(np.repeat(np.arange(K, dtype=np.int32), T), R)
     obj = np.tile(np.arange(T, dtype=np.int32), R * K)
     return run, step, obj
 
 
-def _array_column(name: str, values: np.ndarray, rows: int) -> pl.Series:
+def array_column(name: str, values: np.ndarray, rows: int) -> pl.Series:
     """(rows, ...) -> scalar column if no trailing dims, else a flattened fixed-size Array column."""
     flat = values.reshape(rows, -1) if values.ndim > 1 else values.reshape(rows)
     if flat.ndim == 1:
@@ -56,13 +56,13 @@ def table_metadata(table: str, names: Mapping[str, object], units: Mapping[str, 
 # ---- truth -------------------------------------------------------------------------------
 def truth_to_frame(truth: Truth) -> tuple[pl.DataFrame, dict[str, str]]:
     R, K, T, n = truth.state.shape
-    run, step, target = _grid(R, K, T)
+    run, step, target = run_step_grid(R, K, T)
     rows = R * K * T
     cols = [pl.Series("run", run), pl.Series("step", step), pl.Series("time", truth.time[step]),
-            pl.Series("target", target), _array_column("x", truth.state, rows)]
+            pl.Series("target", target), array_column("x", truth.state, rows)]
     label_shapes = {}
     for name, values in truth.labels.items():
-        cols.append(_array_column(name, values, rows))
+        cols.append(array_column(name, values, rows))
         label_shapes[name] = list(values.shape[3:])
     meta = table_metadata("truth", {"state": list(truth.state_names), "labels": label_shapes},
                           {"time": "s", "x": "m, m/s (m/s^2 for ax, ay, az) per state_names", "acceleration": "m/s^2"})
@@ -81,15 +81,15 @@ def truth_from_frame(df: pl.DataFrame, meta: Mapping[str, str]) -> Truth:
 # ---- detections ----------------------------------------------------------------------------
 def detections_to_frame(d: Detections) -> tuple[pl.DataFrame, dict[str, str]]:
     R, K, D, m = d.z.shape
-    run, step, slot = _grid(R, K, D)
+    run, step, slot = run_step_grid(R, K, D)
     rows = R * K * D
     target = d.target.reshape(rows)
     detected = d.detected.reshape(rows)
     df = pl.DataFrame([
         pl.Series("run", run), pl.Series("step", step), pl.Series("time", d.time[step]),
         pl.Series("sensor", d.sensor[step].astype(np.int32)), pl.Series("detection", slot),
-        pl.Series("target", target.astype(np.int32)), _array_column("z", d.z, rows),
-        _array_column("R", d.noise_covariance, rows), pl.Series("detected", detected),
+        pl.Series("target", target.astype(np.int32)), array_column("z", d.z, rows),
+        array_column("R", d.noise_covariance, rows), pl.Series("detected", detected),
         pl.Series("clutter", detected & (target < 0)),
     ])
     names: dict[str, object] = {"measurement": list(d.measurement_names)}
@@ -123,19 +123,19 @@ def estimate_to_frame(est: TrackEstimate, state_names: tuple[str, ...], compact_
     (column ``P_upper``, row-major i <= j): 3.4x smaller for a 6-state filter, for long runs
     (study 003: 100 runs x 10 001 steps) where the full float64 P would be ~200 MB per variant."""
     R, K, n = est.state.shape
-    run, step, target = _grid(R, K, 1)
+    run, step, target = run_step_grid(R, K, 1)
     rows = R * K
     if compact_covariance:
         upper = np.triu_indices(n)
-        covariance = _array_column("P_upper", est.covariance[..., upper[0], upper[1]], rows).cast(
+        covariance = array_column("P_upper", est.covariance[..., upper[0], upper[1]], rows).cast(
             pl.Array(pl.Float32, upper[0].size))
     else:
-        covariance = _array_column("P", est.covariance, rows)
+        covariance = array_column("P", est.covariance, rows)
     cols = [pl.Series("run", run), pl.Series("step", step), pl.Series("time", est.time[step]),
-            pl.Series("target", target), _array_column("x", est.state, rows), covariance]
+            pl.Series("target", target), array_column("x", est.state, rows), covariance]
     extra_shapes = {}
     for name, values in est.extras.items():
-        cols.append(_array_column(name, values, rows))
+        cols.append(array_column(name, values, rows))
         extra_shapes[name] = {"shape": list(values.shape[2:]), "dtype": str(values.dtype)}
     meta = table_metadata("estimates", {"state": list(state_names), "extras": extra_shapes},
                           {"time": "s", "x": "per state names",

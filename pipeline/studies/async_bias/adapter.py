@@ -29,7 +29,7 @@ from pipeline.studies.async_bias.codec import bias_estimates_from_frame, bias_es
 from pipeline.data import Detections, Truth
 from pipeline.errors import ConfigError
 from pipeline.seeding import run_generators
-from pipeline.evaluate import _quiet_nanmean, consistency_metrics
+from pipeline.evaluate import quiet_nanmean, consistency_metrics
 
 
 class BiasRegistrationStudy(Study):
@@ -164,7 +164,7 @@ def bias_study_metrics(truth: Truth, result: BiasRegistrationResult, true_bias: 
             grid[: steps[0]] = prior
         return grid
 
-    with np.errstate(invalid="ignore"), _quiet_nanmean():
+    with np.errstate(invalid="ignore"), quiet_nanmean():
         if np.isfinite(result.bias).any():
             err = result.bias - true_bias                                   # (R, K, 4S)
             rmse = np.sqrt(np.mean(err**2, axis=0))

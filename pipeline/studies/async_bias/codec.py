@@ -13,7 +13,7 @@ import numpy as np
 import polars as pl
 
 from filters.bias import BIAS_NAMES, STATE_NAMES as BIAS_STUDY_STATE, BiasRegistrationResult
-from pipeline.schemas import META_NAMES, META_UNITS, TableError, _array_column, _grid, table_metadata
+from pipeline.schemas import META_NAMES, META_UNITS, TableError, array_column, run_step_grid, table_metadata
 
 
 def bias_estimates_to_frame(res: BiasRegistrationResult) -> tuple[pl.DataFrame, dict[str, str]]:
@@ -22,7 +22,7 @@ def bias_estimates_to_frame(res: BiasRegistrationResult) -> tuple[pl.DataFrame, 
     (x, P biased; x_compensated, P_compensated; bias columns null)."""
     R, K, Tsel, _ = res.track_state.shape
     objects = np.concatenate([[-1], res.targets]).astype(np.int32)
-    run, step, slot = _grid(R, K, Tsel + 1)
+    run, step, slot = run_step_grid(R, K, Tsel + 1)
     rows = run.size
     is_bias = slot == 0
 
@@ -42,7 +42,7 @@ def bias_estimates_to_frame(res: BiasRegistrationResult) -> tuple[pl.DataFrame, 
             ("x_compensated", None, res.compensated_state, (4,)),
             ("P_compensated", None, res.compensated_covariance, (4, 4)),
             ("bias", res.bias, None, (n,)), ("bias_P", res.bias_covariance, None, (n, n))):
-        column = _array_column(name, per_object(bias_part, track_part, shape), rows)
+        column = array_column(name, per_object(bias_part, track_part, shape), rows)
         keep = is_bias if track_part is None else ~is_bias
         cols.append(pl.select(pl.when(pl.Series(keep)).then(column)).to_series().alias(name))
     units = {"time": "s", "x": "m, m/s (x, y, vx, vy)", "P": "row-major 4 x 4", "bias": "per radar: m, rad, 1, 1",

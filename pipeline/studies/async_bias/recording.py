@@ -51,9 +51,9 @@ import numpy as np
 
 from filters.bias import BIAS_NAMES, BiasRegistrationResult
 from pipeline.data import Detections, Truth
-from pipeline.recording import (log_north_up, _atomic_recording, checked_record_runs, _ellipses, _FRAMES, _lighter,
-    _log_config, _log_metric_series, _metric_series, NORTH_UP_FRAME, _path_part, _PATH_SAFE, _time_columns,
-    _TRUTH_COLOUR, variant_colour, _xy_index)
+from pipeline.recording import (log_north_up, atomic_recording, checked_record_runs, covariance_ellipses, FRAMES_PATH, lighter_colour,
+    log_config, log_metric_series, metric_time_series, NORTH_UP_FRAME, path_part, PATH_SAFE, time_columns,
+    TRUTH_COLOUR, variant_colour, xy_index)
 
 if TYPE_CHECKING:  # pragma: no cover
     import polars as pl
@@ -118,7 +118,7 @@ def _check_inputs(truth: Truth, detections: Detections, estimates: Mapping[str, 
     if sensors.size and (sensors.min() < 0 or sensors.max() >= S):
         raise ValueError(f"detections.sensor: indices {np.unique(sensors).tolist()} but the network has {S} radars")
     for key, est in estimates.items():
-        if not _PATH_SAFE.match(key):
+        if not PATH_SAFE.match(key):
             raise ValueError(f"variant key {key!r} is not path-safe (allowed: letters, digits, '_', '-', '.')")
         K = est.time.shape[0]
         Tsel = np.asarray(est.targets).size
@@ -174,7 +174,7 @@ def _styled_metric_series(metric_series: dict) -> dict:
             if m["compensated"]:
                 name = f"{name} · compensated"
             else:
-                name, colour = f"{name} · biased", _lighter(colour, 0.5)
+                name, colour = f"{name} · biased", lighter_colour(colour, 0.5)
         out[(metric, key)] = (steps, t, values, name, colour)
     return out
 
@@ -243,7 +243,7 @@ def write_bias_recording(path: Path, *, experiment: str, truth: Truth, detection
     names = [str(n) for n in getattr(sensor, "names", [f"radar{n + 1}" for n in range(S)])]
     noise_std = getattr(sensor, "noise_std", None)
     noise_std = None if noise_std is None else np.asarray(noise_std, dtype=np.float64)
-    truth_xy = _xy_index(truth.state_names, "truth")
+    truth_xy = xy_index(truth.state_names, "truth")
     grid = np.asarray(truth.time, dtype=np.float64)
     det_steps = _grid_steps(grid, detections.time, "detections")
     est_steps = {key: _grid_steps(grid, est.time, f"estimate {key!r}") for key, est in estimates.items()}
@@ -252,7 +252,7 @@ def write_bias_recording(path: Path, *, experiment: str, truth: Truth, detection
     colours = {key: variant_colour(i) for i, key in enumerate(variant_keys)}
     display = {key: str(display_names.get(key, key)) for key in variant_keys}
     bias_keys = [key for key in variant_keys if _has_bias(estimates[key])]
-    metric_series = _styled_metric_series(_metric_series(metrics, experiment, variant_keys, display, colours))
+    metric_series = _styled_metric_series(metric_time_series(metrics, experiment, variant_keys, display, colours))
     bands = _chi2_bands(metrics, metric_series, S)
 
     import rerun as rr  # lazily: ~0.6 s
@@ -263,8 +263,8 @@ def write_bias_recording(path: Path, *, experiment: str, truth: Truth, detection
     radar_doc = _radar_table(names, positions, noise_std, true_bias.reshape(S, 4))
     doc = (f"{description.strip()}\n\n" if description else "") + f"Radars and their true biases:\n\n{radar_doc}\n"
 
-    with _atomic_recording(rr, path, experiment, blueprint) as rec:
-        times = _time_columns(rr)
+    with atomic_recording(rr, path, experiment, blueprint) as rec:
+        times = time_columns(rr)
         ui = rr.Radius.ui_points
         flip = np.array([1.0, -1.0, 1.0])
         log_north_up(rr, rec)
@@ -274,16 +274,16 @@ def write_bias_recording(path: Path, *, experiment: str, truth: Truth, detection
         for r in record_runs:
             _log_run(rr, rec, times, ui, r, truth, truth_xy, detections, det_steps, estimates, est_steps,
                      positions, names, colours, display, true_bias, flip)
-        _log_metric_series(rr, rec, times, metric_series)
+        log_metric_series(rr, rec, times, metric_series)
         for metric, (steps, t, mean, lo, hi) in bands.items():
-            base = f"/metrics/{_path_part(metric)}/chi2"
+            base = f"/metrics/{path_part(metric)}/chi2"
             for part, values, label, width in (("mean", mean, "χ² mean (dof)", 1.5),
                                                ("lower", lo, "χ² 95 % band", 1.0),
                                                ("upper", hi, "χ² 95 % band", 1.0)):
                 rec.log(f"{base}/{part}", rr.SeriesLines(names=label, colors=(200, 200, 200), widths=width),
                         static=True)
                 rec.send_columns(f"{base}/{part}", indexes=times(t, steps), columns=rr.Scalars.columns(scalars=values))
-        _log_config(rr, rec, experiment, doc, config_text, record_runs, truth.runs)
+        log_config(rr, rec, experiment, doc, config_text, record_runs, truth.runs)
 
 
 def _log_run(rr, rec, times, ui, r: int, truth: Truth, truth_xy: list[int], detections: Detections,
@@ -298,10 +298,10 @@ def _log_run(rr, rec, times, ui, r: int, truth: Truth, truth_xy: list[int], dete
     xy = np.asarray(truth.state[r], dtype=np.float64)[..., truth_xy]                # (Kt, T, 2)
     T = xy.shape[1]
     strips = [xy[:, t][np.isfinite(xy[:, t]).all(-1)] for t in range(T)]
-    rec.log(f"{world}/truth", rr.LineStrips2D(strips, colors=_TRUTH_COLOUR, radii=ui(0.75),
+    rec.log(f"{world}/truth", rr.LineStrips2D(strips, colors=TRUTH_COLOUR, radii=ui(0.75),
                                               labels=[str(t + 1) for t in range(T)], show_labels=True,
                                               draw_order=16.0), static=True)
-    rec.log(f"{world}/truth", rr.Points2D.from_fields(colors=_TRUTH_COLOUR, radii=ui(3.0), draw_order=30.0),
+    rec.log(f"{world}/truth", rr.Points2D.from_fields(colors=TRUTH_COLOUR, radii=ui(3.0), draw_order=30.0),
             static=True)
     ok = np.isfinite(xy).all(-1)                                                   # (Kt, T)
     steps = np.nonzero(ok.any(-1))[0]
@@ -313,7 +313,7 @@ def _log_run(rr, rec, times, ui, r: int, truth: Truth, truth_xy: list[int], dete
         steps = np.nonzero(ok[:, t])[0]
         if steps.size:
             rec.send_columns(
-                f"{_FRAMES}/target{t + 1}_run{r}", indexes=times(grid[steps], steps),
+                f"{FRAMES_PATH}/target{t + 1}_run{r}", indexes=times(grid[steps], steps),
                 columns=rr.Transform3D.columns(
                     translation=np.c_[xy[steps, t], np.zeros(steps.size)], scale=np.tile(flip, (steps.size, 1)),
                     parent_frame=["tf#/world"] * steps.size, child_frame=[target_frame(t, r)] * steps.size))
@@ -372,7 +372,7 @@ def _log_run(rr, rec, times, ui, r: int, truth: Truth, truth_xy: list[int], dete
                 rec.send_columns(f"{base}/estimate", indexes=times(grid[at], at),
                                  columns=rr.Points2D.columns(positions=pos[good]).partition(counts))
                 rec.send_columns(f"{base}/covariance", indexes=times(grid[at], at),
-                                 columns=rr.LineStrips2D.columns(strips=_ellipses(pos[good], P[good]))
+                                 columns=rr.LineStrips2D.columns(strips=covariance_ellipses(pos[good], P[good]))
                                  .partition(counts))
 
         # ---- bias estimates +- 2 sigma against the true biases ------------------------------
@@ -391,10 +391,10 @@ def _log_run(rr, rec, times, ui, r: int, truth: Truth, truth_xy: list[int], dete
                 at = steps_of[good]
                 entity = f"/bias/{key}/run{r}/radar{n + 1}/{component}"
                 parts = (("", mean[good], f"{display[key]} estimate [{unit}]", colour, 2.0),
-                         ("/plus_2sigma", mean[good] + 2 * sigma[good], f"{display[key]} +2σ", _lighter(colour), 1.0),
-                         ("/minus_2sigma", mean[good] - 2 * sigma[good], f"{display[key]} −2σ", _lighter(colour),
+                         ("/plus_2sigma", mean[good] + 2 * sigma[good], f"{display[key]} +2σ", lighter_colour(colour), 1.0),
+                         ("/minus_2sigma", mean[good] - 2 * sigma[good], f"{display[key]} −2σ", lighter_colour(colour),
                           1.0),
-                         ("/true", np.full(at.size, true_bias[j]), "true", _TRUTH_COLOUR, 1.5))
+                         ("/true", np.full(at.size, true_bias[j]), "true", TRUTH_COLOUR, 1.5))
                 for suffix, values, label, col, width in parts:
                     rec.log(entity + suffix, rr.SeriesLines(names=label, colors=col, widths=width), static=True)
                     rec.send_columns(entity + suffix, indexes=times(grid[at], at),
@@ -526,7 +526,7 @@ def _track_metric_views(rrb, metric_series: dict, variant_keys: list[str], bias_
             keep = key in bias_keys
         if keep:
             groups.setdefault((m["quantity"], int(m["radar"]), int(m["target"])), []).append(
-                f"/metrics/{_path_part(metric)}/{key}")
+                f"/metrics/{path_part(metric)}/{key}")
     order = {"position_rmse": 0, "velocity_rmse": 1, "track_nees": 2}
     short = {"position_rmse": "position RMSE [m]", "velocity_rmse": "velocity RMSE [m/s]",
              "track_nees": "NEES (4 dof)"}

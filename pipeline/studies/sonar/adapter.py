@@ -26,7 +26,7 @@ from pipeline.metrics import Metric, register, unit_of
 from pipeline.data import Detections, Truth
 from pipeline.errors import ConfigError
 from pipeline.bounds import PerTruth
-from pipeline.evaluate import _quiet_nanmean, per_step_metrics
+from pipeline.evaluate import quiet_nanmean, per_step_metrics
 
 register(
     Metric("position_rmse_x", "m"), Metric("position_rmse_y", "m"),
@@ -91,7 +91,7 @@ class SonarStudy(Study):
     def per_step_metrics(self, truth: Truth, estimate, sensor) -> dict[str, np.ndarray]:
         out = per_step_metrics(truth, estimate)
         err = estimate.state[..., :2] - truth.state[:, :, 0, :2]
-        with np.errstate(invalid="ignore"), _quiet_nanmean():
+        with np.errstate(invalid="ignore"), quiet_nanmean():
             out["position_rmse_x"] = np.sqrt(np.nanmean(err[..., 0] ** 2, axis=0))
             out["position_rmse_y"] = np.sqrt(np.nanmean(err[..., 1] ** 2, axis=0))
             if self.bound_model is not None:
@@ -152,7 +152,7 @@ class SonarStudy(Study):
         per_run = {}
         for key, est in estimates.items():
             err = est.state[..., :2] - truth.state[:, :, 0, :2]
-            with _quiet_nanmean():
+            with quiet_nanmean():
                 add(key, "rmse_x", "all", np.sqrt(np.nanmean(err[..., 0] ** 2)))
                 add(key, "rmse_y", "all", np.sqrt(np.nanmean(err[..., 1] ** 2)))
                 per_run[key] = np.sqrt(np.nanmean(err**2, axis=1))            # (R, 2)

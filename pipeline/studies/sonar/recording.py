@@ -55,9 +55,9 @@ import numpy as np
 from filters.base import TrackEstimate
 from pipeline.metrics import axis_unit_of
 from pipeline.data import Detections, Truth
-from pipeline.recording import (log_north_up, _atomic_recording, checked_record_runs, _ellipses, _FRAMES, _log_config,
-    _log_metric_series, _metric_series, NORTH_UP_FRAME, _path_part, _PATH_SAFE, target_frame, _time_columns,
-    _TRUTH_COLOUR, variant_colour, _xy_index)
+from pipeline.recording import (log_north_up, atomic_recording, checked_record_runs, covariance_ellipses, FRAMES_PATH, log_config,
+    log_metric_series, metric_time_series, NORTH_UP_FRAME, path_part, PATH_SAFE, target_frame, time_columns,
+    TRUTH_COLOUR, variant_colour, xy_index)
 
 if TYPE_CHECKING:  # pragma: no cover
     import polars as pl
@@ -111,7 +111,7 @@ def _check_inputs(truth: Truth, detections: Detections, estimates: Mapping[str, 
         raise ValueError(f"detections: z {detections.z.shape} and sensor {np.shape(detections.sensor)} must be "
                          f"(R, K, 1, 2) (bearing, range) and (K,) on the truth's {K} steps")
     for key, est in estimates.items():
-        if not _PATH_SAFE.match(key):
+        if not PATH_SAFE.match(key):
             raise ValueError(f"variant key {key!r} is not path-safe (allowed: letters, digits, '_', '-', '.')")
         n = len(truth.state_names)
         if est.state.shape != (R, K, n):
@@ -160,11 +160,11 @@ def write_sonar_recording(path: Path, *, experiment: str, truth: Truth, detectio
         raise ValueError(f"ellipse_stride: {ellipse_stride} must be >= 1")
     ellipse_stride = int(ellipse_stride)
     R = truth.runs
-    xy = _xy_index(truth.state_names, "truth")
+    xy = xy_index(truth.state_names, "truth")
     variant_keys = list(estimates)
     colours = {key: variant_colour(i) for i, key in enumerate(variant_keys)}
     display = {key: str(display_names.get(key, key)) for key in variant_keys}
-    metric_series = _metric_series(metrics, experiment, variant_keys, display, colours)
+    metric_series = metric_time_series(metrics, experiment, variant_keys, display, colours)
 
     time = np.asarray(truth.time, dtype=np.float64)
     K = time.size
@@ -184,8 +184,8 @@ def write_sonar_recording(path: Path, *, experiment: str, truth: Truth, detectio
     blueprint = _sonar_blueprint(rrb, record_runs, variant_keys, display, metric_series, ownship, target, zoom)
     doc = (f"{description.strip()}\n\n" if description else "") + _sensor_doc(sensor, active, time, ellipse_stride)
 
-    with _atomic_recording(rr, path, experiment, blueprint) as rec:
-        times = _time_columns(rr)
+    with atomic_recording(rr, path, experiment, blueprint) as rec:
+        times = time_columns(rr)
         ui = rr.Radius.ui_points
         flip = np.array([1.0, -1.0, 1.0])
         log_north_up(rr, rec)
@@ -211,8 +211,8 @@ def write_sonar_recording(path: Path, *, experiment: str, truth: Truth, detectio
         rec.send_columns("/sensor/active", indexes=times(time, steps_all),
                          columns=rr.Scalars.columns(scalars=active.astype(np.float64)))
 
-        _log_metric_series(rr, rec, times, metric_series)
-        _log_config(rr, rec, experiment, doc, config_text, record_runs, R)
+        log_metric_series(rr, rec, times, metric_series)
+        log_config(rr, rec, experiment, doc, config_text, record_runs, R)
 
 
 def _log_run(rr, rec, times, ui, r: int, time: np.ndarray, own: np.ndarray, target: np.ndarray,
@@ -223,7 +223,7 @@ def _log_run(rr, rec, times, ui, r: int, time: np.ndarray, own: np.ndarray, targ
     K = time.size
 
     # ---- own-ship and target: whole tracks (static) + current positions; target-centred frame --
-    for name, track, colour in (("ownship", own, _OWNSHIP_COLOUR), ("target", target, _TRUTH_COLOUR)):
+    for name, track, colour in (("ownship", own, _OWNSHIP_COLOUR), ("target", target, TRUTH_COLOUR)):
         ok = np.isfinite(track).all(-1)
         steps = np.nonzero(ok)[0]
         rec.log(f"{world}/{name}", rr.LineStrips2D([track[ok]], colors=colour, radii=ui(0.75), draw_order=16.0,
@@ -234,7 +234,7 @@ def _log_run(rr, rec, times, ui, r: int, time: np.ndarray, own: np.ndarray, targ
                          columns=rr.Points2D.columns(positions=track[ok]))
     steps = np.nonzero(np.isfinite(target).all(-1))[0]
     if steps.size:
-        rec.send_columns(f"{_FRAMES}/{target_frame(r)}", indexes=times(time[steps], steps),
+        rec.send_columns(f"{FRAMES_PATH}/{target_frame(r)}", indexes=times(time[steps], steps),
                          columns=rr.Transform3D.columns(
                              translation=np.c_[target[steps], np.zeros(steps.size)],
                              scale=np.tile(flip, (steps.size, 1)), parent_frame=["tf#/world"] * steps.size,
@@ -289,7 +289,7 @@ def _log_run(rr, rec, times, ui, r: int, time: np.ndarray, own: np.ndarray, targ
         steps = np.nonzero(shown)[0]
         if steps.size:
             rec.send_columns(f"{base}/covariance", indexes=times(time[steps], steps),
-                             columns=rr.LineStrips2D.columns(strips=_ellipses(pos[shown], P[shown])))
+                             columns=rr.LineStrips2D.columns(strips=covariance_ellipses(pos[shown], P[shown])))
         err = rel - relative                                                                 # (K, 2)
         for i, axis in enumerate(("x", "y")):
             entity = f"/errors/run{r}/{axis}/{key}"
@@ -380,7 +380,7 @@ def _sonar_blueprint(rrb, record_runs: list[int], variant_keys: list[str], displ
     for m in TIME_SERIES_METRICS[1:]:
         if m in present:
             title = _VIEW_TITLES.get(m, f"{m} [{axis_unit_of(m)}]")
-            tabs.append(rrb.TimeSeriesView(origin=f"/metrics/{_path_part(m)}", axis_x=whole_run, plot_legend=legend,
+            tabs.append(rrb.TimeSeriesView(origin=f"/metrics/{path_part(m)}", axis_x=whole_run, plot_legend=legend,
                                            name=f"{title} (all runs)"))
     be = rrb.encodings
     log_columns = rrb.TextLogColumns(

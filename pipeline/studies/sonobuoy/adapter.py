@@ -22,7 +22,7 @@ from typing import Sequence
 
 import numpy as np
 
-from filters.particle import NOISE_GAINS, STATE_NAMES, BuoyReports, MultipleModelParticleFilter
+from filters.particle import MODE_NAMES, NOISE_GAINS, STATE_NAMES, BuoyReports, MultipleModelParticleFilter
 from pipeline import schemas
 from pipeline.contract import RecordingInputs, Study
 from pipeline.metrics import BAND, Metric, nees, register, unit_of
@@ -30,7 +30,7 @@ from pipeline.data import Detections, Truth
 from pipeline.errors import ConfigError
 from pipeline.seeding import run_generators
 from pipeline.bounds import PerTruth
-from pipeline.evaluate import _quiet_nanmean, consistency_metrics, nis_metrics
+from pipeline.evaluate import quiet_nanmean, consistency_metrics, nis_metrics
 
 register(
     Metric("position_median_error", "m"), Metric("buoy_position_rmse", "m"), Metric("buoy_position_median_error", "m"),
@@ -40,7 +40,6 @@ register(
     Metric("mode_probability_ccw", "probability"), Metric("mode_probability_cw", "probability"),
     Metric("track_loss_rate", "fraction of runs"), Metric("final_position_rmse", "m"), Metric("peak_median_error", "m"),
 )
-MODE_NAMES = ("cv", "ccw", "cw")
 
 
 class SonobuoyStudy(Study):
@@ -122,7 +121,7 @@ class SonobuoyStudy(Study):
         error = np.linalg.norm(estimate.state[..., 0:2] - true[..., 0:2], axis=-1)          # (R, K)
         buoy_error = (estimate.state[..., 4:] - true[..., 4:]).reshape(error.shape + (4, 4))[..., 0:2]
         out = {}
-        with np.errstate(invalid="ignore"), _quiet_nanmean():
+        with np.errstate(invalid="ignore"), quiet_nanmean():
             out["position_rmse"] = np.sqrt(np.nanmean(error**2, axis=0))
             out["position_median_error"] = np.nanmedian(error, axis=0)
             buoy_distance = np.sqrt(np.sum(buoy_error**2, axis=-1))                       # (R, K, 4)

@@ -55,12 +55,12 @@ from typing import TYPE_CHECKING, Mapping, Sequence
 import numpy as np
 
 from filters.base import TrackEstimate
+from filters.particle import MODE_NAMES
 from pipeline.data import Detections, Truth
-from pipeline.recording import (log_north_up, _atomic_recording, checked_record_runs, _ellipses, _lighter,
-    _log_config, _log_metric_series, _metric_series, NORTH_UP_FRAME, _path_part, _PATH_SAFE, _time_columns,
-    _TRUTH_COLOUR, variant_colour, _xy_index)
+from pipeline.recording import (log_north_up, atomic_recording, checked_record_runs, covariance_ellipses, lighter_colour,
+    log_config, log_metric_series, metric_time_series, NORTH_UP_FRAME, path_part, PATH_SAFE, time_columns,
+    TRUTH_COLOUR, variant_colour, xy_index)
 from pipeline.metrics import axis_unit_of
-from pipeline.studies.sonobuoy.adapter import MODE_NAMES
 
 if TYPE_CHECKING:  # pragma: no cover
     import polars as pl
@@ -100,7 +100,7 @@ def _check_inputs(truth: Truth, detections: Detections, estimates: Mapping[str, 
                          f"{np.shape(detections.detected)} must be (R, K, 8[, 1]) = ({R}, {K}, {SLOTS}): the 8 "
                          f"bearing slots of SonobuoyBearings on the truth's {K} steps")
     for key, est in estimates.items():
-        if not _PATH_SAFE.match(key):
+        if not PATH_SAFE.match(key):
             raise ValueError(f"variant key {key!r} is not path-safe (allowed: letters, digits, '_', '-', '.')")
         if est.state.shape != (R, K, n):
             raise ValueError(f"estimate {key!r}: state shape {est.state.shape}, expected {(R, K, n)} (R runs, the "
@@ -172,12 +172,12 @@ def write_sonobuoy_recording(path: Path, *, experiment: str, truth: Truth, detec
     if int(max_particles) < 1:
         raise ValueError(f"max_particles: {max_particles} must be >= 1")
     R = truth.runs
-    xy = _xy_index(truth.state_names, "truth")
+    xy = xy_index(truth.state_names, "truth")
     buoy_xy = _buoy_index(truth.state_names)
     variant_keys = list(estimates)
     colours = {key: variant_colour(i) for i, key in enumerate(variant_keys)}
     display = {key: str(display_names.get(key, key)) for key in variant_keys}
-    metric_series = _mode_styled(_metric_series(metrics, experiment, variant_keys, display, colours), R)
+    metric_series = _mode_styled(metric_time_series(metrics, experiment, variant_keys, display, colours), R)
     time = np.asarray(truth.time, dtype=np.float64)
     observer = np.asarray(sensor.observer_position, dtype=np.float64)
     state = np.asarray(truth.state, dtype=np.float64)[:, :, 0]                          # (R, K, n)
@@ -204,8 +204,8 @@ def write_sonobuoy_recording(path: Path, *, experiment: str, truth: Truth, detec
                                     state[record_runs], xy, buoy_xy, observer)
     doc = (f"{description.strip()}\n\n" if description else "") + _sensor_doc(sensor, notes)
 
-    with _atomic_recording(rr, path, experiment, blueprint) as rec:
-        times = _time_columns(rr)
+    with atomic_recording(rr, path, experiment, blueprint) as rec:
+        times = time_columns(rr)
         ui = rr.Radius.ui_points
         log_north_up(rr, rec)
         rec.log("/world/observer", rr.Points2D([observer], colors=_OBSERVER_COLOUR, radii=ui(7.0), labels="observer",
@@ -216,12 +216,12 @@ def write_sonobuoy_recording(path: Path, *, experiment: str, truth: Truth, detec
 
         if any(m == "nees_position" for m, _ in metric_series):
             _log_nees_band(rr, rec, times, time, R)
-        _log_metric_series(rr, rec, times, metric_series)
+        log_metric_series(rr, rec, times, metric_series)
         if notes:
             zero = np.zeros(len(notes))
             rec.send_columns("/notes", indexes=times(zero, zero.astype(np.int64)),
                              columns=rr.TextLog.columns(text=notes, level=["INFO"] * len(notes)))
-        _log_config(rr, rec, experiment, doc, config_text, record_runs, R)
+        log_config(rr, rec, experiment, doc, config_text, record_runs, R)
 
 
 def _mode_styled(metric_series: dict, runs: int) -> dict:
@@ -245,7 +245,7 @@ def _log_run(rr, rec, times, ui, r: int, time: np.ndarray, true: np.ndarray, tru
     # ---- truth: target and buoys, whole tracks (static) + current positions ---------------------
     target = true[:, xy]                                                                  # (K, 2)
     buoys = true[:, buoy_xy]                                                              # (K, 4, 2)
-    tracks = [("truth", target, _TRUTH_COLOUR, None)] + [
+    tracks = [("truth", target, TRUTH_COLOUR, None)] + [
         (f"buoys/{i + 1}", buoys[:, i], _BUOY_COLOUR, f"B{i + 1}") for i in range(BUOYS)]
     for name, track, colour, label in tracks:
         ok = np.isfinite(track).all(-1)
@@ -261,7 +261,7 @@ def _log_run(rr, rec, times, ui, r: int, time: np.ndarray, true: np.ndarray, tru
         mode = np.asarray(truth.labels["turn_mode"][r]).reshape(K, -1)[:, 0]
         right = (mode == 3).any()
         rec.log(f"/truth/run{r}/turning", rr.SeriesLines(
-            names=f"truth: turning{' right' if right else ''} (1) / straight (0)", colors=_TRUTH_COLOUR, widths=1.0),
+            names=f"truth: turning{' right' if right else ''} (1) / straight (0)", colors=TRUTH_COLOUR, widths=1.0),
             static=True)
         rec.send_columns(f"/truth/run{r}/turning", indexes=times(time, steps_all),
                          columns=rr.Scalars.columns(scalars=(mode != 1).astype(np.float64)))
@@ -307,7 +307,7 @@ def _log_run(rr, rec, times, ui, r: int, time: np.ndarray, true: np.ndarray, tru
         steps = np.nonzero(shown)[0]
         if steps.size:
             rec.send_columns(f"{base}/covariance", indexes=times(time[steps], steps),
-                             columns=rr.LineStrips2D.columns(strips=_ellipses(pos[shown], P[shown])))
+                             columns=rr.LineStrips2D.columns(strips=covariance_ellipses(pos[shown], P[shown])))
 
         bpos = X[:, buoy_xy]                                                              # (K, 4, 2)
         bcov = C[:, buoy_xy[:, :, None], buoy_xy[:, None, :]]                             # (K, 4, 2, 2)
@@ -323,7 +323,7 @@ def _log_run(rr, rec, times, ui, r: int, time: np.ndarray, true: np.ndarray, tru
                                                                         draw_order=35.0), static=True)
         if cok.any():
             rec.send_columns(f"{base}/buoys/covariance", indexes=times(time, steps_all),
-                             columns=rr.LineStrips2D.columns(strips=_ellipses(bpos[cok], bcov[cok]))
+                             columns=rr.LineStrips2D.columns(strips=covariance_ellipses(bpos[cok], bcov[cok]))
                              .partition(cok.sum(-1)))
 
         if (key, r) in clouds:
@@ -334,7 +334,7 @@ def _log_run(rr, rec, times, ui, r: int, time: np.ndarray, true: np.ndarray, tru
             rec.send_columns(f"{base}/particles", indexes=times(time, steps_all), columns=rr.Points2D.columns(
                 positions=particles[..., xy][kept], colors=palette[modes[kept]]).partition(kept.sum(-1)))
             cloud_buoys = particles[:, :, buoy_xy][kept].reshape(-1, 2)                   # 4 per particle
-            rec.log(f"{base}/particles/buoys", rr.Points2D.from_fields(colors=(*_lighter(colour), 90), radii=ui(1.0),
+            rec.log(f"{base}/particles/buoys", rr.Points2D.from_fields(colors=(*lighter_colour(colour), 90), radii=ui(1.0),
                                                                        draw_order=24.0), static=True)
             rec.send_columns(f"{base}/particles/buoys", indexes=times(time, steps_all),
                              columns=rr.Points2D.columns(positions=cloud_buoys).partition(BUOYS * kept.sum(-1)))
@@ -347,13 +347,13 @@ def _log_run(rr, rec, times, ui, r: int, time: np.ndarray, true: np.ndarray, tru
                 entity = f"{series}/mode_probability/{mode}"
                 steps = np.nonzero(np.isfinite(mu[:, i]))[0]
                 rec.log(entity, rr.SeriesLines(names=f"{MODE_LABELS[mode]} · run {r}",
-                                               colors=_lighter(MODE_COLOURS[mode], 0.35), widths=1.0), static=True)
+                                               colors=lighter_colour(MODE_COLOURS[mode], 0.35), widths=1.0), static=True)
                 rec.send_columns(entity, indexes=times(time[steps], steps),
                                  columns=rr.Scalars.columns(scalars=mu[steps, i]))
         if "ess" in est.extras:
             ess = np.asarray(est.extras["ess"][r], dtype=np.float64)
             steps = np.nonzero(np.isfinite(ess))[0]
-            rec.log(f"{series}/ess", rr.SeriesLines(names=f"{display[key]} · run {r}", colors=_lighter(colour),
+            rec.log(f"{series}/ess", rr.SeriesLines(names=f"{display[key]} · run {r}", colors=lighter_colour(colour),
                                                     widths=1.0), static=True)
             rec.send_columns(f"{series}/ess", indexes=times(time[steps], steps),
                              columns=rr.Scalars.columns(scalars=ess[steps]))
@@ -468,7 +468,7 @@ def _sonobuoy_blueprint(rrb, record_runs: list[int], variant_keys: list[str], di
                                             name="target position NEES (2 dof, mean of all runs)", axis_x=whole_run,
                                             plot_legend=legend))
         else:
-            plots.append(rrb.TimeSeriesView(origin=f"/metrics/{_path_part(m)}", axis_x=whole_run, plot_legend=legend,
+            plots.append(rrb.TimeSeriesView(origin=f"/metrics/{path_part(m)}", axis_x=whole_run, plot_legend=legend,
                                             name=f"{m} [{axis_unit_of(m)}] (all runs)"))
     if plots:
         rows.append(rrb.Horizontal(*plots))
