@@ -32,6 +32,9 @@ class MeasurementSeries:
     sensor_position : (d,) float or None
         Position of a static sensor in the truth's frame, for measurements taken relative to it
         (a radar's range and angles); None means the origin.
+    state_names : tuple of str or None
+        The state layout the study evaluates (its truth's), for a filter that can write its estimate
+        in any order (filters.tracker); None leaves the layout to the filter.
     """
 
     time: np.ndarray
@@ -40,6 +43,7 @@ class MeasurementSeries:
     detected: np.ndarray
     sensor: np.ndarray
     sensor_position: np.ndarray | None = None
+    state_names: tuple[str, ...] | None = None
 
     @property
     def runs(self) -> int:

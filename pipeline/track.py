@@ -17,7 +17,8 @@ from pipeline.data import Detections
 from pipeline.faults import FaultChecks
 
 
-def measurement_series(det: Detections, slot: int = 0, sensor_position=None) -> MeasurementSeries:
+def measurement_series(det: Detections, slot: int = 0, sensor_position=None,
+                       state_names: tuple[str, ...] | None = None) -> MeasurementSeries:
     """The filters' view of one detection slot (single-target, single-sensor studies).
 
     ``sensor_position`` is the static sensor's position (e.g. ``Radar3D.position``) for sensors
@@ -27,7 +28,7 @@ def measurement_series(det: Detections, slot: int = 0, sensor_position=None) -> 
     constant = np.allclose(cov, cov[:1, :1])
     position = None if sensor_position is None else np.asarray(sensor_position, dtype=float)
     return MeasurementSeries(det.time, det.z[:, :, slot], cov[0, 0] if constant else cov,
-                             det.detected[:, :, slot], det.sensor, position)
+                             det.detected[:, :, slot], det.sensor, position, state_names)
 
 
 class SingleTargetStudy(Study):
@@ -46,7 +47,8 @@ class SingleTargetStudy(Study):
         self.bound = bound
 
     def track_input(self, truth, detections: Detections, sensor, seed: int) -> MeasurementSeries:
-        return measurement_series(detections, sensor_position=getattr(sensor, "position", None))
+        return measurement_series(detections, sensor_position=getattr(sensor, "position", None),
+                                  state_names=tuple(truth.state_names))
 
     def estimate_to_frame(self, estimate, truth):
         from pipeline import schemas

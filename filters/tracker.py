@@ -1,0 +1,215 @@
+"""A Kalman-type tracker for every study whose sensor gives positions, radar polar measurements or sonar bearings.
+
+Motion model, per Cartesian axis (Bar-Shalom, Li & Kirubarajan 2001, 6.2 and 8.2):
+
+- ``cv``: (p, v), white acceleration noise of power spectral density ``acceleration_density``
+  [m^2/s^3]: F = [[1, T], [0, 1]], Q = q [[T^3/3, T^2/2], [T^2/2, T]];
+- ``singer``: (p, v, a), acceleration a first-order Markov process with time constant ``tau`` [s]
+  and standard deviation ``sigma_m`` [m/s^2] (filters.models.singer_*).
+
+Measurements, by kind (filters.base.MEASUREMENT_KINDS), all batched over the Monte Carlo runs:
+
+- ``position_xy``: a linear Kalman filter, H picks the positions; missed scans are not updated.
+- ``range_azimuth_elevation``: converted measurements z_c = polar_to_cartesian(z) + the sensor's
+  position with R_c = J R_p J' at the measured point (filters.coordinates, notes 2.1 of study 000),
+  then the same linear filter.
+- ``sonar_bearing_range``: an EKF on the target's position and velocity relative to the own-ship,
+  whose known acceleration enters as an input (filters.mgekf.relative_motion_model); the bearing
+  atan2(x, y), and the range while the sonar is active, with the EKF Jacobian at the prediction
+  (filters.mgekf.nonlinear_update with modified=False).
+
+Start: two-point differencing on the first two (Cartesian) scans, p = z1, v = (z1 - z0)/T with
+cov(p) = R1, cov(p, v) = R1/T, cov(v) = (R0 + R1)/T^2 (Bar-Shalom et al. 5.5.3; a Singer
+acceleration starts at 0 with variance sigma_m^2); the sonar: the first (active) scan converted,
+relative velocity minus the own-ship's with ``initial_velocity_std``. The estimate is NaN before.
+
+Output: the state in the order the input names (``MeasurementSeries.state_names``: the layout of
+the truth the study evaluates; for the sonar, filters.mgekf.STATE_NAMES), a component the motion
+model lacks NaN with its covariance row and column (a reduced estimate); ``nis`` / ``nis_dof``
+extras from each update's own innovation.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Literal
+
+import numpy as np
+
+from filters.base import MeasurementSeries, TrackEstimate
+from filters.coordinates import converted_covariance, polar_to_cartesian
+from filters.mgekf import STATE_NAMES as SONAR_STATE_NAMES
+from filters.mgekf import SonarReports, cv_relative_model, nonlinear_update, relative_motion_model
+from filters.models import singer_process_noise, singer_transition
+
+AXES = ("x", "y", "z")
+
+
+class KalmanTracker:
+    """A CV or Singer Kalman filter (converted measurements) / EKF (sonar bearings); see the module docstring."""
+
+    accepts = frozenset({"position_xy", "range_azimuth_elevation", "sonar_bearing_range"})
+
+    def __init__(self, name: str = "KF", motion: Literal["cv", "singer"] = "singer", tau: float = 10.0,
+                 sigma_m: float = 5.0, acceleration_density: float = 10.0, initial_velocity_std: float = 15.0) -> None:
+        if motion not in ("cv", "singer"):
+            raise ValueError(f"motion: {motion!r} is not one of ['cv', 'singer']")
+        for key, value in (("tau", tau), ("sigma_m", sigma_m), ("acceleration_density", acceleration_density),
+                           ("initial_velocity_std", initial_velocity_std)):
+            if not (np.isfinite(value) and value > 0):
+                raise ValueError(f"{key}: {value} must be a finite number > 0")
+        self.name = name
+        self.motion = motion
+        self.tau, self.sigma_m = float(tau), float(sigma_m)
+        self.acceleration_density = float(acceleration_density)
+        self.initial_velocity_std = float(initial_velocity_std)
+
+    # ---- model ----------------------------------------------------------------------------------
+    @property
+    def kinematics(self) -> int:
+        return 2 if self.motion == "cv" else 3
+
+    def axis_model(self, dt: float) -> tuple[np.ndarray, np.ndarray]:
+        """F, Q of one Cartesian axis."""
+        if self.motion == "cv":
+            q = self.acceleration_density
+            return (np.array([[1.0, dt], [0.0, 1.0]]),
+                    q * np.array([[dt**3 / 3.0, dt**2 / 2.0], [dt**2 / 2.0, dt]]))
+        return singer_transition(dt, self.tau), singer_process_noise(dt, self.tau, self.sigma_m)
+
+    def state_names(self, axes: int) -> tuple[str, ...]:
+        """Internal order: axis-major, (p, v[, a]) per axis."""
+        kin = ("", "v", "a")[: self.kinematics]
+        return tuple(f"{k}{a}" for a in AXES[:axes] for k in kin)
+
+    # ---- run ------------------------------------------------------------------------------------
+    def run(self, measurements) -> TrackEstimate:
+        started = time.perf_counter()
+        if isinstance(measurements, SonarReports):
+            state, covariance, names, extras = self._run_sonar(measurements)
+            wanted = SONAR_STATE_NAMES
+        elif isinstance(measurements, MeasurementSeries):
+            positions, noise, detected, dt = self._cartesian(measurements)
+            state, covariance, extras = self._run_cartesian(positions, noise, detected, dt)
+            names = self.state_names(positions.shape[-1])
+            wanted = measurements.state_names or names
+        else:
+            raise TypeError(f"{self.name}: takes {sorted(self.accepts)} measurements, not {type(measurements).__name__}")
+        state, covariance = to_layout(state, covariance, names, tuple(wanted))
+        return TrackEstimate(np.asarray(measurements.time, dtype=float).copy(), state, covariance, extras,
+                             time.perf_counter() - started)
+
+    @staticmethod
+    def _cartesian(m: MeasurementSeries) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+        """(positions (R, K, d), their noise covariance (R, K, d, d), detected (R, K), scan period)."""
+        z = np.asarray(m.z, dtype=float)
+        R, K, d = z.shape
+        if K < 3:
+            raise ValueError("measurements: the two-point start needs at least 3 scans")
+        dts = np.diff(m.time)
+        if not np.allclose(dts, dts[0]):
+            raise ValueError("measurements.time: the KalmanTracker needs a constant scan period")
+        noise = np.asarray(m.noise_covariance, dtype=float)
+        noise = np.broadcast_to(noise, (R, K, d, d)) if noise.ndim == 2 else noise
+        detected = np.asarray(m.detected, dtype=bool)
+        if not detected[:, :2].all():
+            raise ValueError("measurements: the two-point start needs detections at the first two scans of every run")
+        if d == 3:
+            # range, azimuth, elevation relative to the sensor: converted measurements (notes 2.1)
+            variances = np.diagonal(noise, axis1=-2, axis2=-1)
+            converted = polar_to_cartesian(np.where(detected[..., None], z, 1.0))
+            offset = np.zeros(3) if m.sensor_position is None else np.asarray(m.sensor_position, dtype=float)
+            positions = np.where(detected[..., None], converted + offset, np.nan)
+            noise = converted_covariance(np.where(detected[..., None], z, 1.0), variances)
+            return positions, noise, detected, float(dts[0])
+        if d != 2:
+            raise ValueError(f"measurements.z: {d} values per scan; the KalmanTracker takes 2 (x, y) or 3 "
+                             f"(range, azimuth, elevation)")
+        return z, noise, detected, float(dts[0])
+
+    def _run_cartesian(self, z, noise, detected, dt):
+        R, K, d = z.shape
+        nk = self.kinematics
+        n = d * nk
+        F1, Q1 = self.axis_model(dt)
+        F, Q = np.kron(np.eye(d), F1), np.kron(np.eye(d), Q1)
+        pos = np.arange(d) * nk                                                   # p of each axis
+        vel = pos + 1
+        states = np.full((R, K, n), np.nan)
+        covariances = np.full((R, K, n, n), np.nan)
+        nis = np.full((R, K), np.nan)
+        # two-point start at scan 1 (Bar-Shalom et al. 5.5.3), with the two scans' own covariances
+        x = np.zeros((R, n))
+        x[:, pos], x[:, vel] = z[:, 1], (z[:, 1] - z[:, 0]) / dt
+        P = np.zeros((R, n, n))
+        R0, R1 = noise[:, 0], noise[:, 1]
+        P[:, pos[:, None], pos[None, :]] = R1
+        P[:, pos[:, None], vel[None, :]] = R1 / dt
+        P[:, vel[:, None], pos[None, :]] = R1 / dt
+        P[:, vel[:, None], vel[None, :]] = (R0 + R1) / dt**2
+        if nk == 3:
+            P[:, pos + 2, pos + 2] = self.sigma_m**2
+        states[:, 1], covariances[:, 1] = x, P
+        for k in range(2, K):
+            x = x @ F.T                                                           # predict
+            P = F @ P @ F.T + Q
+            PHt = P[:, :, pos]                                                    # (R, n, d)
+            S = PHt[:, pos, :] + noise[:, k]
+            nu = np.where(detected[:, k, None], z[:, k] - x[:, pos], 0.0)
+            gain = np.swapaxes(np.linalg.solve(S, np.swapaxes(PHt, 1, 2)), 1, 2)
+            seen = detected[:, k]
+            x = x + np.einsum("rij,rj->ri", gain, nu)
+            updated = P - gain @ np.swapaxes(PHt, 1, 2)
+            P = np.where(seen[:, None, None], 0.5 * (updated + np.swapaxes(updated, 1, 2)), P)
+            nis[:, k] = np.where(seen, np.einsum("ri,ri->r", nu, np.linalg.solve(S, nu[..., None])[..., 0]), np.nan)
+            states[:, k], covariances[:, k] = x, P
+        return states, covariances, {"nis": nis, "nis_dof": np.where(np.isfinite(nis), float(d), 0.0)}
+
+    def _run_sonar(self, reports: SonarReports):
+        R, K, _ = reports.z.shape
+        n = 4 if self.motion == "cv" else 6
+        names = SONAR_STATE_NAMES[:n]
+        beta, r = reports.z[:, 0, 0], reports.z[:, 0, 1]
+        x = np.zeros((R, n))
+        x[:, 0], x[:, 1] = r * np.sin(beta), r * np.cos(beta)
+        x[:, 2:4] = -reports.ownship_velocity0                # the target's own velocity unknown: zero mean
+        J = np.stack([np.stack([r * np.cos(beta), np.sin(beta)], -1),
+                      np.stack([-r * np.sin(beta), np.cos(beta)], -1)], -2)
+        P = np.zeros((R, n, n))
+        P[:, :2, :2] = J @ np.diag([reports.bearing_std**2, reports.range_std**2]) @ np.swapaxes(J, -1, -2)
+        P[:, 2:4, 2:4] = self.initial_velocity_std**2 * np.eye(2)
+        if n == 6:
+            P[:, 4:, 4:] = self.sigma_m**2 * np.eye(2)
+        states = np.full((R, K, n), np.nan)
+        covariances = np.full((R, K, n, n), np.nan)
+        nis = np.full((R, K), np.nan)
+        states[:, 0], covariances[:, 0] = x, P
+        models = {}
+        for k in range(1, K):
+            dt = float(reports.time[k] - reports.time[k - 1])
+            if dt not in models:
+                models[dt] = (cv_relative_model(dt, self.acceleration_density) if n == 4
+                              else relative_motion_model(dt, self.tau, self.sigma_m))
+            Phi, Gamma, Q = models[dt]
+            x = x @ Phi.T + reports.ownship_acceleration[:, k - 1] @ Gamma.T
+            P = Phi @ P @ Phi.T + Q
+            x, P, nis[:, k] = nonlinear_update(x, P, reports.z[:, k], bool(reports.active[k]), reports.bearing_std,
+                                               reports.range_std, modified=False, return_nis=True)
+            states[:, k], covariances[:, k] = x, P
+        dof = np.where(reports.active, 2.0, 1.0)[None, :] * np.isfinite(nis)
+        return states, covariances, names, {"nis": nis, "nis_dof": dof}
+
+
+def to_layout(state: np.ndarray, covariance: np.ndarray, names: tuple[str, ...], wanted: tuple[str, ...]
+              ) -> tuple[np.ndarray, np.ndarray]:
+    """The estimate in the order ``wanted``; a wanted component not in ``names`` is NaN, with NaN
+    covariance row and column (a reduced estimate)."""
+    if tuple(names) == tuple(wanted):
+        return state, covariance
+    index = np.array([names.index(w) if w in names else -1 for w in wanted])
+    have = index >= 0
+    safe = np.where(have, index, 0)
+    out_x = np.where(have, state[..., safe], np.nan)
+    out_P = covariance[..., safe[:, None], safe[None, :]]
+    out_P = np.where(have[:, None] & have[None, :], out_P, np.nan)
+    return out_x, out_P
