@@ -95,7 +95,7 @@ def _provenance(df: pl.DataFrame, ctx: RunContext, experiment: str, config_hash:
 def _config_columns(resolved: dict) -> dict[str, Any]:
     # filters.<v>.models repeats the top-level models node (interpolated): keep it once; the report
     # node holds reference tables (a paper's numbers), not parameters of the experiment
-    return {f"{k}": v for k, v in flatten(resolved, skip=("filters.*.models", "description", "report")).items()}
+    return {f"{k}": v for k, v in flatten(resolved, skip=("filters.*.models", "description", "report", "smoke")).items()}
 
 
 def _windows(cfg: DictConfig, key: str, K: int) -> list[Window]:

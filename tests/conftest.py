@@ -27,3 +27,17 @@ def measurements(truth, seed: int, noise_std: float = 20.0) -> MeasurementSeries
     from pipeline.studies.ao_vsimm.sensor import PositionSensor
     det = PositionSensor(noise_std).measure(truth, seed)
     return MeasurementSeries(det.time, det.z[:, :, 0], noise_std**2 * np.eye(2), det.detected[:, :, 0], det.sensor)
+
+
+def smoke_experiments() -> list[tuple[str, list[str]]]:
+    """(experiment, its ``smoke`` overrides) for every experiment that sets one (one per study, see
+    conf/config.yaml): the tests that must cover every study parametrize over this, not a hand list."""
+    from hydra import compose, initialize_config_dir
+
+    found = []
+    with initialize_config_dir(version_base="1.3", config_dir=str(CONF)):
+        for path in sorted((CONF / "experiment").glob("*.yaml")):
+            cfg = compose("config", overrides=[f"experiment={path.stem}"])
+            if cfg.get("smoke") is not None:
+                found.append((path.stem, [str(o) for o in cfg.smoke]))
+    return found

@@ -15,6 +15,7 @@ from hydra import compose, initialize_config_dir
 from polars.testing import assert_frame_equal
 
 from pipeline.runner import RunContext, run_experiment
+from tests.conftest import smoke_experiments
 
 ROOT = Path(__file__).resolve().parents[1]
 # columns that say where and when a table was made, not what it holds
@@ -63,14 +64,9 @@ def sweep(artifacts: Path, *args: str) -> list[Path]:
     return sorted((p for p in where.iterdir() if p.is_dir() and p.name.isdigit()), key=lambda p: int(p.name))
 
 
-@pytest.mark.parametrize("experiment, overrides", [
-    ("ao_vsimm_s1", ["mc.runs=3", "scenario.steps=40"]),
-    ("mie_los", ["mc.runs=3"]),
-    ("async_bias", ["mc.runs=2", "scenario.duration=20"]),
-    ("sonar_case2", ["mc.runs=2", "scenario.duration=1200"]),
-    ("sonobuoy_case2", ["mc.runs=2", "scenario.duration=100", "target_model.particles=100"]),
-])
-def test_a_cached_stage_gives_the_same_tables_as_a_recomputed_one(tmp_path, experiment, overrides):
+@pytest.mark.parametrize("experiment, smoke", smoke_experiments())
+def test_a_cached_stage_gives_the_same_tables_as_a_recomputed_one(tmp_path, experiment, smoke):
+    overrides = ["mc.runs=2", *smoke]
     fresh = in_process(tmp_path / "a", "fresh", f"experiment={experiment}", *overrides)
     again = in_process(tmp_path / "a", "again", f"experiment={experiment}", *overrides)      # every stage cached
     uncached = in_process(tmp_path / "b", "uncached", f"experiment={experiment}", "cache.enabled=false", *overrides)
@@ -88,14 +84,9 @@ def test_the_launcher_does_not_change_the_tables(tmp_path):
 
 
 
-@pytest.mark.parametrize("experiment, overrides", [
-    ("ao_vsimm_s1", ["mc.runs=9", "scenario.steps=40"]),
-    ("mie_los", ["mc.runs=9"]),
-    ("async_bias", ["mc.runs=9", "scenario.duration=20"]),
-    ("sonar_case2", ["mc.runs=9", "scenario.duration=600"]),
-    ("sonobuoy_case2", ["mc.runs=9", "scenario.duration=60", "target_model.particles=50"]),
-])
-def test_chunks_of_runs_give_the_same_tables_as_all_runs_at_once(tmp_path, experiment, overrides):
+@pytest.mark.parametrize("experiment, smoke", smoke_experiments())
+def test_chunks_of_runs_give_the_same_tables_as_all_runs_at_once(tmp_path, experiment, smoke):
+    overrides = ["mc.runs=9", *smoke]
     whole = in_process(tmp_path / "whole", "whole", f"experiment={experiment}", *overrides)
     for chunk in (1, 7):
         chunked = in_process(tmp_path / f"chunk{chunk}", "chunked", f"experiment={experiment}",

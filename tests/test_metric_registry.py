@@ -9,11 +9,9 @@ import pytest
 
 from pipeline import metrics
 from pipeline.metrics import Metric, format_value, lookup, nees, register
+from tests.conftest import smoke_experiments
 from tests.test_pipeline import run_in_process
 
-SHORT = {"ao_vsimm_s2": [], "mie_los": [], "async_bias": ["scenario.duration=20"],
-         "sonar_case2": ["scenario.duration=1200", "sensors.active_intervals=[[0,300],[600,700]]"],
-         "sonobuoy_case2": ["scenario.duration=100", "target_model.particles=100"]}
 
 
 def test_small_values_keep_their_significant_digits():
@@ -46,9 +44,9 @@ def test_nees_by_hand():
     assert value[2] == pytest.approx(9.0 / 2.0)                 # singular: the pseudo-inverse
 
 
-@pytest.mark.parametrize("experiment", sorted(SHORT))
-def test_every_metric_a_study_writes_is_registered_with_a_unit(tmp_path, experiment):
-    out, _ = run_in_process(tmp_path, "run", f"experiment={experiment}", "mc.runs=2", *SHORT[experiment])
+@pytest.mark.parametrize("experiment, smoke", smoke_experiments())
+def test_every_metric_a_study_writes_is_registered_with_a_unit(tmp_path, experiment, smoke):
+    out, _ = run_in_process(tmp_path, "run", f"experiment={experiment}", "mc.runs=2", *smoke)
     names = set(out.metrics["metric"].unique().to_list()) | set(out.summary["metric"].unique().to_list())
     unregistered = sorted(n for n in names if lookup(n) is None)
     assert not unregistered, f"{experiment}: metrics without a registry entry: {unregistered}"

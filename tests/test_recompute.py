@@ -6,14 +6,13 @@ import polars as pl
 import pytest
 
 from pipeline.recompute import main
+from tests.conftest import smoke_experiments
 from tests.test_pipeline import run_in_process
 
 
-@pytest.mark.parametrize("experiment", ["ao_vsimm_s2", "mie_los", "async_bias", "sonar_case1", "sonobuoy_case2"])
-def test_every_study_recomputes_its_stored_metrics_bit_for_bit(tmp_path, capsys, experiment):
-    short = {"sonar_case1": ["scenario.duration=600"], "sonobuoy_case2": ["scenario.duration=100",
-                                                                          "target_model.particles=100"]}
-    _, ctx = run_in_process(tmp_path, "run", f"experiment={experiment}", "mc.runs=2", *short.get(experiment, []))
+@pytest.mark.parametrize("experiment, smoke", smoke_experiments())
+def test_every_study_recomputes_its_stored_metrics_bit_for_bit(tmp_path, capsys, experiment, smoke):
+    _, ctx = run_in_process(tmp_path, "run", f"experiment={experiment}", "mc.runs=2", *smoke)
     assert main([str(ctx.run_dir), "--out", str(tmp_path / "again")]) == 0
     out = capsys.readouterr().out
     assert out.count("equal to the stored table bit for bit") == 2, out
