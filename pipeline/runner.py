@@ -29,7 +29,8 @@ from pipeline.evaluate import Window, metrics_frame, summary_rows
 from pipeline.faults import FaultChecks, fault_summary
 from pipeline.metrics import unit_of
 from pipeline.tables import ReportContext, format_summary
-from pipeline.track import SingleTargetStudy, filter_runs, flags_from_table, with_fault_flags
+from pipeline.stages import declare as declare_stages
+from pipeline.track import SingleTargetStudy, flags_from_table
 from pipeline.store import StageCache, atomic_write_parquet, atomic_write_text, package_version, publish, stable_hash, stage_key
 
 log = logging.getLogger("pipeline")
@@ -253,60 +254,50 @@ def run_experiment(cfg: DictConfig, ctx: RunContext) -> RunOutcome:
     atomic_write_text(OmegaConf.to_yaml(cfg, resolve=True), ctx.run_dir / "config.yaml")
     variants = prepared.variants
     log.info("experiment %s: %d Monte Carlo runs, seed %d, variants %s -> %s", experiment, runs, seed, variants, ctx.run_dir)
-    study, scenario, sensor, estimators = prepared.study, prepared.scenario, prepared.sensor, prepared.estimators
+    study, sensor, estimators = prepared.study, prepared.sensor, prepared.estimators
     cache = StageCache(ctx.artifacts / "cache", enabled=bool(cfg.cache.enabled))
     provenance = {"mtt.experiment": experiment, "mtt.config_hash": config_hash, "mtt.package_version": package_version()}
     stages = _Stages(cache, ctx, provenance)
 
-    # each key covers the import closure of the code that makes the table (pipeline.fingerprint): the
-    # modules of every _target_ in the stage's config subtree, plus the codec and the stage's own code
-    scenario_key = stage_key("scenario", {"scenario": resolved["scenario"], "runs": runs, "seed": seed},
-                             producers=("pipeline.schemas", "pipeline.seeding"))
-    truth, _, _ = stages.run("scenario", scenario_key, "truth", lambda: scenario.generate(runs, seed),
-                          schemas.truth_to_frame, Path("truth.parquet"), f"{runs} runs")
+    # the declared stages (pipeline.stages), run in order through the cache: each key covers its
+    # config subtree, its inputs' keys and the import closure of the code that makes its table
+    outputs: dict[str, Any] = {}
+    keys: dict[str, str] = {}
+    tables: dict[str, pl.DataFrame] = {}
+    cached: dict[str, bool] = {}
+    for stage in declare_stages(cfg, resolved, prepared, build_fault_checks(cfg)):
+        inputs = {name: outputs[name] for name in stage.inputs}
+        key = stage_key(stage.cache, stage.config, tuple(keys[name] for name in stage.inputs), stage.producers)
+        outputs[stage.output], cached[stage.output], tables[stage.output] = stages.run(
+            stage.cache, key, stage.table, lambda s=stage, i=inputs: s.compute(**i),
+            lambda value, s=stage, i=inputs: s.to_frame(value, i), stage.publish_as, stage.describe(inputs),
+            stage.from_frame)
+        keys[stage.output] = key
+    truth = outputs["truth"]
+    detections = outputs["detections"]
     K = truth.time.size
-    measure_key = stage_key("measure", {"sensors": resolved["sensors"], "seed": seed}, (scenario_key,),
-                            producers=("pipeline.schemas", "pipeline.seeding"))
-    detections, _, _ = stages.run("measure", measure_key, "detections", lambda: sensor.measure(truth, seed),
-                               schemas.detections_to_frame, Path("detections.parquet"), f"{runs} runs x {K} scans")
-    track_input = study.track_input(truth, detections, sensor, seed)
-    # the adapter's node is part of what the filters see (the default adapter has none)
-    study_node = {"study": resolved["study"]} if cfg.get("study") is not None else {}
-
-    chunk_runs = cfg.mc.get("chunk_runs")
-    fault_checks = build_fault_checks(cfg)
     faults: dict[str, dict[str, int]] = {}
     estimates: dict[str, Any] = {}
     display: dict[str, str] = {}
-    cached: dict[str, bool] = {}
     for v in variants:
-        # the fault checks decide the table's fault column, so they are part of its key
-        est_key = stage_key("track", {"filter": resolved["filters"][v], **study_node, "faults": resolved.get("faults")},
-                            (measure_key,), producers=("pipeline.schemas", "pipeline.track"))
-        estimator = estimators[v]
-        estimate, hit, table = stages.run(
-            "track", est_key, study.estimate_table, lambda e=estimator: filter_runs(e, track_input, chunk_runs),
-            lambda e: with_fault_flags(study, e, truth, fault_checks),
-            Path("estimates") / f"{v}.parquet", f"{getattr(estimator, 'name', v)}: {runs} runs x {K} scans",
-            study.estimate_from_frame)
+        estimate, hit = outputs[f"estimates/{v}"], cached[f"estimates/{v}"]
         if not hit:
             per_step = getattr(estimate, "extras", {}).get("models_evaluated")
             models = f", {per_step[:, 2:].mean():.2f} models/step" if per_step is not None and K > 2 else ""
-            log.info("[track] %s filtered in %.3f s%s", getattr(estimator, "name", v), estimate.compute_seconds, models)
+            log.info("[track] %s filtered in %.3f s%s", getattr(estimators[v], "name", v), estimate.compute_seconds,
+                     models)
         estimates[v] = estimate
-        display[v] = str(getattr(estimator, "name", v))
-        cached[v] = hit
-        faults[v] = fault_summary(flags_from_table(table, runs, K))
+        display[v] = str(getattr(estimators[v], "name", v))
+        faults[v] = fault_summary(flags_from_table(tables[f"estimates/{v}"], runs, K))
         if faults[v]["diverged_runs"]:
             log.warning("[track] %s: %d of %d runs hit a numerical fault (%s); their rows are flagged in "
                         "estimates/%s.parquet (column fault)", display[v], faults[v]["diverged_runs"], runs,
                         ", ".join(f"{name[len('fault_runs_'):]}: {count}" for name, count in faults[v].items()
                                   if name.startswith("fault_runs_") and count), v)
-
     started = time.perf_counter()
     metrics, summary = evaluate_stage(cfg, study, sensor, truth, estimates, display, faults, runs)
     summary = summary.with_columns(pl.col("variant_key").replace_strict(
-        {v: cached[v] for v in variants}, return_dtype=pl.Boolean).alias("estimates_from_cache"))
+        {v: cached[f"estimates/{v}"] for v in variants}, return_dtype=pl.Boolean).alias("estimates_from_cache"))
     metrics = _provenance(metrics, ctx, experiment, config_hash)
     summary = _provenance(summary, ctx, experiment, config_hash)
     summary = summary.with_columns(*[pl.lit(v).alias(k) for k, v in _config_columns(resolved).items()])
@@ -321,7 +312,8 @@ def run_experiment(cfg: DictConfig, ctx: RunContext) -> RunOutcome:
         record_runs = list(cfg.record.runs) if not isinstance(cfg.record.runs, int) else [cfg.record.runs]
         study.record(ctx.run_dir / "recording.rrd", RecordingInputs(
             experiment=experiment, truth=truth, detections=detections, estimates=estimates, display_names=display,
-            metrics=metrics, record_runs=record_runs, sensor=sensor, estimators=estimators, track_input=track_input,
+            metrics=metrics, record_runs=record_runs, sensor=sensor, estimators=estimators,
+            track_input=study.track_input(truth, detections, sensor, seed),     # the filters' view, for re-runs
             seed=seed, config_text=OmegaConf.to_yaml(cfg, resolve=True), description=str(cfg.get("description", ""))))
         log.info("[record] recording.rrd (runs %s), %.2f s", record_runs, time.perf_counter() - started)
 

@@ -1,0 +1,82 @@
+"""The cached stages of an experiment, declared: scenario -> measure -> track (one per variant).
+
+A ``Stage`` names its output, the outputs of earlier stages it reads (``inputs``), the resolved
+config subtree that parameterizes it and the modules that make it (both in its cache key, with its
+inputs' keys: pipeline.store.stage_key), how it is computed from its inputs, and its table codec.
+The runner (pipeline.runner) runs the list in order through the stage cache; evaluate and record
+then read the outputs. Kedro's nodes in spirit: inputs are named outputs or declared values, never
+a shared context.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable, Mapping
+
+import polars as pl
+
+from pipeline import schemas
+from pipeline.track import filter_runs, with_fault_flags
+
+Codec = Callable[[Any, Mapping[str, Any]], tuple[pl.DataFrame, dict]]     # (value, the inputs) -> table
+Decoder = Callable[[pl.DataFrame, dict[str, str]], Any]
+
+
+@dataclass(frozen=True)
+class Stage:
+    cache: str                               # the cache folder: scenario | measure | track
+    output: str                              # its name among the outputs: truth, detections, estimates/<variant>
+    table: str                               # the table name its file's metadata carries
+    inputs: tuple[str, ...]                  # outputs of earlier stages, passed to compute by name
+    config: Mapping[str, Any]                # the resolved config that parameterizes it (in the key)
+    producers: tuple[str, ...]               # modules whose import closure is in the key (beyond config _target_s)
+    compute: Callable[..., Any]              # compute(**inputs) -> value
+    to_frame: Codec                          # the table (a track table's fault column needs the truth)
+    from_frame: Decoder
+    describe: Callable[[Mapping[str, Any]], str]   # the log line's subject, from the inputs
+
+    @property
+    def publish_as(self) -> Path:
+        return Path(f"{self.output}.parquet")
+
+
+def declare(cfg: Any, resolved: Mapping[str, Any], prepared: Any, fault_checks: Any) -> list[Stage]:
+    """The experiment's stages, in order (``prepared``: pipeline.runner.Prepared; ``fault_checks``:
+    pipeline.faults.FaultChecks of the config)."""
+    runs, seed = int(cfg.mc.runs), int(cfg.mc.seed)
+    study, scenario, sensor = prepared.study, prepared.scenario, prepared.sensor
+    chunk_runs = cfg.mc.get("chunk_runs")
+    # the adapter's node is part of what the filters see (the default adapter has none)
+    study_node = {"study": resolved["study"]} if cfg.get("study") is not None else {}
+    track_inputs: dict[int, Any] = {}
+
+    def track_input(truth, detections):          # one filters' view for all variants
+        key = id(detections)
+        if key not in track_inputs:
+            track_inputs.clear()
+            track_inputs[key] = study.track_input(truth, detections, sensor, seed)
+        return track_inputs[key]
+
+    stages = [
+        Stage("scenario", "truth", "truth", (), {"scenario": resolved["scenario"], "runs": runs, "seed": seed},
+              ("pipeline.stages", "pipeline.schemas", "pipeline.seeding"), lambda: scenario.generate(runs, seed),
+              lambda truth, _: schemas.truth_to_frame(truth), schemas.truth_from_frame, lambda _: f"{runs} runs"),
+        Stage("measure", "detections", "detections", ("truth",), {"sensors": resolved["sensors"], "seed": seed},
+              ("pipeline.stages", "pipeline.schemas", "pipeline.seeding"), lambda truth: sensor.measure(truth, seed),
+              lambda detections, _: schemas.detections_to_frame(detections), schemas.detections_from_frame,
+              lambda i: f"{runs} runs x {i['truth'].time.size} scans"),
+    ]
+    for v in prepared.variants:
+        estimator = prepared.estimators[v]
+        name = getattr(estimator, "name", v)
+        stages.append(Stage(
+            "track", f"estimates/{v}", study.estimate_table, ("truth", "detections"),
+            # the fault checks decide the table's fault column, so they are part of its key
+            {"filter": resolved["filters"][v], **study_node, "faults": resolved.get("faults")},
+            ("pipeline.stages", "pipeline.schemas", "pipeline.track"),
+            lambda truth, detections, e=estimator: filter_runs(e, track_input(truth, detections), chunk_runs),
+            lambda estimate, inputs: with_fault_flags(study, estimate, inputs["truth"], fault_checks),
+            study.estimate_from_frame,
+            lambda i, n=name: f"{n}: {runs} runs x {i['truth'].time.size} scans"))
+    return stages
