@@ -302,6 +302,27 @@ class SonarReports:
                        ownship_velocity0=self.ownship_velocity0[index])
 
 
+def sonar_start(reports: SonarReports, n: int, initial_velocity_std: float, sigma_m: float
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """State (R, n) and covariance after the first (active) scan of the relative state (n = 4 or 6):
+    the converted position with J diag(sigma_b^2, sigma_r^2) J', the relative velocity minus the
+    own-ship's (the target's own unknown: zero mean, ``initial_velocity_std``), acceleration 0 with
+    variance ``sigma_m``^2."""
+    R = reports.z.shape[0]
+    beta, r = reports.z[:, 0, 0], reports.z[:, 0, 1]
+    x = np.zeros((R, n))
+    x[:, 0], x[:, 1] = r * np.sin(beta), r * np.cos(beta)
+    x[:, 2:4] = -reports.ownship_velocity0                 # target velocity unknown: zero mean
+    J = np.stack([np.stack([r * np.cos(beta), np.sin(beta)], -1),
+                  np.stack([-r * np.sin(beta), np.cos(beta)], -1)], -2)
+    P = np.zeros((R, n, n))
+    P[:, :2, :2] = J @ np.diag([reports.bearing_std**2, reports.range_std**2]) @ np.swapaxes(J, -1, -2)
+    P[:, 2:4, 2:4] = initial_velocity_std**2 * np.eye(2)
+    if n == 6:
+        P[:, 4:, 4:] = sigma_m**2 * np.eye(2)
+    return x, P
+
+
 class _SonarTracker:
     """Shared set-up of the architectures; see the module docstring for the model."""
 
@@ -325,20 +346,7 @@ class _SonarTracker:
         self.clamp = float(clamp)
 
     def _start(self, reports: SonarReports, n: int) -> tuple[np.ndarray, np.ndarray]:
-        """State and covariance after the first (active) scan: converted position, velocity prior."""
-        R = reports.z.shape[0]
-        beta, r = reports.z[:, 0, 0], reports.z[:, 0, 1]
-        x = np.zeros((R, n))
-        x[:, 0], x[:, 1] = r * np.sin(beta), r * np.cos(beta)
-        x[:, 2:4] = -reports.ownship_velocity0                 # target velocity unknown: zero mean
-        J = np.stack([np.stack([r * np.cos(beta), np.sin(beta)], -1),
-                      np.stack([-r * np.sin(beta), np.cos(beta)], -1)], -2)
-        P = np.zeros((R, n, n))
-        P[:, :2, :2] = J @ np.diag([reports.bearing_std**2, reports.range_std**2]) @ np.swapaxes(J, -1, -2)
-        P[:, 2:4, 2:4] = self.initial_velocity_std**2 * np.eye(2)
-        if n == 6:
-            P[:, 4:, 4:] = self.sigma_m**2 * np.eye(2)
-        return x, P
+        return sonar_start(reports, n, self.initial_velocity_std, self.sigma_m)
 
     def _models(self, dt: float):
         return relative_motion_model(dt, self.tau, self.sigma_m), cv_relative_model(

@@ -39,7 +39,7 @@ import numpy as np
 from filters.base import MeasurementSeries, TrackEstimate
 from filters.coordinates import converted_covariance, polar_to_cartesian
 from filters.mgekf import STATE_NAMES as SONAR_STATE_NAMES
-from filters.mgekf import SonarReports, cv_relative_model, nonlinear_update, relative_motion_model
+from filters.mgekf import SonarReports, cv_relative_model, nonlinear_update, relative_motion_model, sonar_start
 from filters.models import singer_process_noise, singer_transition
 
 AXES = ("x", "y", "z")
@@ -169,17 +169,7 @@ class KalmanTracker:
         R, K, _ = reports.z.shape
         n = 4 if self.motion == "cv" else 6
         names = SONAR_STATE_NAMES[:n]
-        beta, r = reports.z[:, 0, 0], reports.z[:, 0, 1]
-        x = np.zeros((R, n))
-        x[:, 0], x[:, 1] = r * np.sin(beta), r * np.cos(beta)
-        x[:, 2:4] = -reports.ownship_velocity0                # the target's own velocity unknown: zero mean
-        J = np.stack([np.stack([r * np.cos(beta), np.sin(beta)], -1),
-                      np.stack([-r * np.sin(beta), np.cos(beta)], -1)], -2)
-        P = np.zeros((R, n, n))
-        P[:, :2, :2] = J @ np.diag([reports.bearing_std**2, reports.range_std**2]) @ np.swapaxes(J, -1, -2)
-        P[:, 2:4, 2:4] = self.initial_velocity_std**2 * np.eye(2)
-        if n == 6:
-            P[:, 4:, 4:] = self.sigma_m**2 * np.eye(2)
+        x, P = sonar_start(reports, n, self.initial_velocity_std, self.sigma_m)
         states = np.full((R, K, n), np.nan)
         covariances = np.full((R, K, n, n), np.nan)
         nis = np.full((R, K), np.nan)
