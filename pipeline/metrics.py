@@ -16,9 +16,12 @@ from __future__ import annotations
 import math
 import re
 from dataclasses import dataclass, replace
-from typing import Callable, Literal
+from typing import TYPE_CHECKING, Callable, Literal
 
 import numpy as np
+
+if TYPE_CHECKING:
+    import polars as pl
 
 BAND = "1 (95 % chi2 band of the run average)"
 COUNT = "count: sum over runs (and, in the summary, over the window's steps)"
@@ -34,6 +37,13 @@ class Metric:
     digits: int = 3                   # significant digits when printed (at least two decimals above 1)
     dof: int | str | None = None      # chi-square degrees of freedom (NEES / NIS), or how they are made
     decimals: int | None = None       # fixed decimals instead of significant digits (percentages)
+    quantity: str | None = None       # the quantity it is a breakdown of (None: the name itself)
+    component: str | None = None      # the axis, bias element or mode it is of that quantity
+
+
+# The tidy columns of the metrics and summary tables: a name's quantity and its breakdown. A family's
+# pattern names its groups 'component', 'sensor' (1-based radar number) and 'target'.
+BREAKDOWN_COLUMNS = ("quantity", "component", "sensor", "target")
 
 
 _REGISTRY: dict[str, Metric] = {}
@@ -67,6 +77,42 @@ def lookup(name: str) -> Metric | None:
         if match:
             return replace(make(match), name=name)
     return None
+
+
+def breakdown(name: str) -> tuple[str, str | None, int | None, int | None]:
+    """(quantity, component, sensor, target) of a metric name: position_rmse_s2_t32 -> (position_rmse,
+    None, 2, 32), acceleration_rmse_x -> (acceleration_rmse, x, None, None); a name the registry does
+    not break down is its own quantity."""
+    if name in _REGISTRY:
+        metric = _REGISTRY[name]
+        return metric.quantity or name, metric.component, None, None
+    for pattern, make in _FAMILIES:
+        match = pattern.fullmatch(name)
+        if match:
+            metric, groups = make(match), match.groupdict()
+            sensor, target = groups.get("sensor"), groups.get("target")
+            return (metric.quantity or name, groups.get("component") or metric.component,
+                    None if sensor is None else int(sensor), None if target is None else int(target))
+    return name, None, None, None
+
+
+def with_breakdown(table: "pl.DataFrame") -> "pl.DataFrame":
+    """``table`` (with a ``metric`` column) with the tidy columns quantity, component, sensor, target
+    after it: "the position RMSE of every study" is ``quantity = 'position_rmse'``, whatever the
+    study's breakdown by axis, radar or target."""
+    import polars as pl
+
+    names = table["metric"].unique(maintain_order=True).to_list()
+    parts = [breakdown(n) for n in names]
+    lookup_frame = pl.DataFrame({"metric": names, "quantity": [p[0] for p in parts],
+                                 "component": [p[1] for p in parts], "sensor": [p[2] for p in parts],
+                                 "target": [p[3] for p in parts]},
+                                schema={"metric": pl.String, "quantity": pl.String, "component": pl.String,
+                                        "sensor": pl.Int32, "target": pl.Int32})
+    joined = table.join(lookup_frame, on="metric", how="left", maintain_order="left")
+    position = table.columns.index("metric") + 1
+    order = table.columns[:position] + list(BREAKDOWN_COLUMNS) + table.columns[position:]
+    return joined.select(order)
 
 
 def unit_of(name: str) -> str:
@@ -126,9 +172,9 @@ def nees(error: np.ndarray, covariance: np.ndarray) -> np.ndarray:
 
 # ---- the shared metrics (every study's tracks, the filters' extras, the runner's summary rows) -------
 register(
-    Metric("acceleration_rmse_x", "m/s^2", "m/s²", label="acc RMSE X"),
-    Metric("acceleration_rmse_y", "m/s^2", "m/s²", label="acc RMSE Y"),
-    Metric("acceleration_rmse_z", "m/s^2", "m/s²", label="acc RMSE Z"),
+    Metric("acceleration_rmse_x", "m/s^2", "m/s²", label="acc RMSE X", quantity="acceleration_rmse", component="x"),
+    Metric("acceleration_rmse_y", "m/s^2", "m/s²", label="acc RMSE Y", quantity="acceleration_rmse", component="y"),
+    Metric("acceleration_rmse_z", "m/s^2", "m/s²", label="acc RMSE Z", quantity="acceleration_rmse", component="z"),
     Metric("acceleration_rmse", "m/s^2", "m/s²", label="acc RMSE"),
     Metric("position_rmse", "m", label="pos RMSE"),
     Metric("velocity_rmse", "m/s", label="vel RMSE"),
@@ -137,16 +183,17 @@ register(
     Metric("models_pct_of_reference", "%", label="models %", decimals=1),
     Metric("group_reached_fraction", "fraction of runs", label="reached"),
     Metric("detections", COUNT, "count", aggregation="sum", label="detections"),
-    Metric("detections_axis_x", COUNT, "count", aggregation="sum", label="det x"),
-    Metric("detections_axis_y", COUNT, "count", aggregation="sum", label="det y"),
-    Metric("detections_axis_z", COUNT, "count", aggregation="sum", label="det z"),
+    Metric("detections_axis_x", COUNT, "count", aggregation="sum", label="det x", quantity="detections", component="x"),
+    Metric("detections_axis_y", COUNT, "count", aggregation="sum", label="det y", quantity="detections", component="y"),
+    Metric("detections_axis_z", COUNT, "count", aggregation="sum", label="det z", quantity="detections", component="z"),
     Metric("compute_seconds", "s", label="compute s"),
     Metric("compute_pct_of_reference", "%", label="compute %", decimals=1),
     Metric("nees_lower", BAND, "-"), Metric("nees_upper", BAND, "-"),
     Metric("nis", "1 (chi2 dof = measurement size)", "-", dof="measurement size"),
     Metric("nis_lower", BAND, "-"), Metric("nis_upper", BAND, "-"),
-    Metric("input_level_x", "m/s^2", "m/s²"), Metric("input_level_y", "m/s^2", "m/s²"),
-    Metric("input_level_z", "m/s^2", "m/s²"),
+    Metric("input_level_x", "m/s^2", "m/s²", quantity="input_level", component="x"),
+    Metric("input_level_y", "m/s^2", "m/s²", quantity="input_level", component="y"),
+    Metric("input_level_z", "m/s^2", "m/s²", quantity="input_level", component="z"),
     Metric("position_bound", "m (sqrt trace of the PCRLB position block; the bound node says of which model)", "m"),
     Metric("position_rmse_over_bound", "ratio (position RMSE / sqrt(PCRLB); 1 = at the bound)", "ratio"),
     Metric("position_bound_model", "m (sqrt trace of the PCRLB position block under the filters' own motion model)",

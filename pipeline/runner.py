@@ -27,7 +27,7 @@ from pipeline.config import build, flatten, selected_variants, validate
 from pipeline.errors import ConfigError
 from pipeline.evaluate import Window, metrics_frame, summary_rows
 from pipeline.faults import FaultChecks, fault_summary
-from pipeline.metrics import unit_of
+from pipeline.metrics import unit_of, with_breakdown
 from pipeline.tables import ReportContext, format_summary
 from pipeline.stages import declare as declare_stages
 from pipeline.track import SingleTargetStudy, flags_from_table
@@ -351,7 +351,8 @@ def evaluate_stage(cfg: DictConfig, study: Study, sensor: Any, truth: Any, estim
     fault_rows = [{"variant": display[v], "variant_key": v, "metric": name, "window": None, "value": float(count),
                    "unit": unit_of(name), "n_runs": runs} for v in variants for name, count in faults[v].items()]
     summary = pl.concat([summary, pl.DataFrame(fault_rows, schema=summary.schema)])
-    return metrics_frame(truth.time, per_variant, runs), summary
+    # the tidy columns: quantity, component, sensor, target (pipeline.metrics.breakdown)
+    return with_breakdown(metrics_frame(truth.time, per_variant, runs)), with_breakdown(summary)
 
 
 def build_fault_checks(cfg: DictConfig) -> FaultChecks:

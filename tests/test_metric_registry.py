@@ -52,3 +52,19 @@ def test_every_metric_a_study_writes_is_registered_with_a_unit(tmp_path, experim
     assert not unregistered, f"{experiment}: metrics without a registry entry: {unregistered}"
     units = out.summary.filter(pl.col("unit") == "")["metric"].unique().to_list()
     assert not units, f"{experiment}: summary rows without a unit: {units}"
+
+
+def test_one_query_finds_the_position_rmse_of_every_study(tmp_path):
+    """'Lowest position RMSE per experiment' silently dropped study 002, whose names carried the radar
+    and target (position_rmse_s2_t32): the tidy columns quantity / component / sensor / target say it."""
+    from pipeline.query import query
+    studies = smoke_experiments()
+    for experiment, smoke in studies:
+        run_in_process(tmp_path, f"{experiment}/run", f"experiment={experiment}", "mc.runs=2", *smoke)
+    best = query("SELECT experiment, MIN(value) AS lowest FROM summary WHERE quantity = 'position_rmse' "
+                 "AND component IS NULL GROUP BY experiment "
+                 "ORDER BY experiment", root=tmp_path)
+    assert best["experiment"].to_list() == sorted(e for e, _ in studies)
+    per_target = query("SELECT DISTINCT sensor, target FROM summary WHERE metric = 'position_rmse_s2_t32'",
+                       root=tmp_path)
+    assert per_target.rows() == [(2, 32)]

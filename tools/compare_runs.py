@@ -76,13 +76,14 @@ def compare(name: str, base: Path, head: Path, renames: dict[str, str]) -> str |
     """None when equal, else what differs."""
     a, b = _renamed(pl.read_parquet(base), renames), pl.read_parquet(head)
     a, b = a.drop([c for c in a.columns if c in PROVENANCE]), b.drop([c for c in b.columns if c in PROVENANCE])
-    if sorted(a.columns) != sorted(b.columns):
-        return f"columns differ: only base {sorted(set(a.columns) - set(b.columns))}, " \
-               f"only here {sorted(set(b.columns) - set(a.columns))}"
+    missing = sorted(set(a.columns) - set(b.columns))
+    if missing:
+        return f"columns of the base missing here: {missing}"
+    b = b.select(a.columns)                 # columns added since the base (e.g. tidy breakdowns) are not compared
     if a.height != b.height:
         return f"{a.height} rows in base, {b.height} here"
     keys = KEYS.get(name, [c for c in ("run", "step", "target") if c in a.columns])
-    a, b = a.sort(keys), b.select(a.columns).sort(keys)
+    a, b = a.sort(keys), b.sort(keys)
     differing = [c for c in a.columns if not _values_equal(a[c], b[c])]
     return f"values differ in {differing}" if differing else None
 

@@ -225,14 +225,19 @@ def target_mean_nis(name: str, nis_sum: np.ndarray, dof: np.ndarray) -> dict[str
 # the study's metric families (radar n, target m), pipeline.metrics
 register(Metric("bias_nees", "1 (chi2 dof = 4 per radar)", "-", dof="4 per radar"),
          Metric("bias_nees_lower", BAND, "-"), Metric("bias_nees_upper", BAND, "-"))
-register_family(r"bias_rmse_(?P<component>[a-z_]+)_s\d+",
-                lambda m: Metric("", BIAS_UNITS[BIAS_NAMES.index(m["component"])]))
-register_family(r"bias_nees_s\d+", lambda m: Metric("", "1 (chi2 dof = 4 per radar)", "-", dof=4))
-register_family(r"track_nees_s\d+_t\d+_compensated", lambda m: Metric("", "1 (chi2 dof = 4)", "-", dof=4))
-register_family(r"nis_s\d+_(lower|upper)", lambda m: Metric("", "1 (95 % chi2 band of the run and target average)", "-"))
-register_family(r"nis_s\d+", lambda m: Metric("", "1 (per-target mean of chi2 dof = 2; expected 2)", "-", dof=2))
-register_family(r"position_rmse_s\d+_t\d+(_compensated)?", lambda m: Metric("", "m"))
-register_family(r"velocity_rmse_s\d+_t\d+(_compensated)?", lambda m: Metric("", "m/s"))
+register_family(r"bias_rmse_(?P<component>[a-z_]+)_s(?P<sensor>\d+)",
+                lambda m: Metric("", BIAS_UNITS[BIAS_NAMES.index(m["component"])], quantity="bias_rmse"))
+register_family(r"bias_nees_s(?P<sensor>\d+)", lambda m: Metric("", "1 (chi2 dof = 4 per radar)", "-", dof=4,
+                                                               quantity="bias_nees"))
+register_family(r"track_nees_s(?P<sensor>\d+)_t(?P<target>\d+)_compensated",
+                lambda m: Metric("", "1 (chi2 dof = 4)", "-", dof=4, quantity="compensated_nees"))
+register_family(r"nis_s(?P<sensor>\d+)_(?P<band>lower|upper)",
+                lambda m: Metric("", "1 (95 % chi2 band of the run and target average)", "-", quantity=f"nis_{m['band']}"))
+register_family(r"nis_s(?P<sensor>\d+)", lambda m: Metric("", "1 (per-target mean of chi2 dof = 2; expected 2)", "-",
+                                                         dof=2, quantity="nis"))
+register_family(r"(?P<kind>position|velocity)_rmse_s(?P<sensor>\d+)_t(?P<target>\d+)(?P<compensated>_compensated)?",
+                lambda m: Metric("", "m" if m["kind"] == "position" else "m/s",
+                                 quantity=("compensated_" if m["compensated"] else "") + f"{m['kind']}_rmse"))
 
 
 def bias_metric_units(names: Sequence[str]) -> dict[str, str]:

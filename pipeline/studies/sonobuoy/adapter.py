@@ -34,10 +34,15 @@ from pipeline.evaluate import quiet_nanmean, consistency_metrics, nis_metrics
 
 register(
     Metric("position_median_error", "m"), Metric("buoy_position_rmse", "m"), Metric("buoy_position_median_error", "m"),
-    Metric("nees_position", "1 (chi2 dof = 2)", "-", dof=2), Metric("nees_position_lower", BAND, "-"),
-    Metric("nees_position_upper", BAND, "-"), Metric("nees_position_median", "1 (chi2 dof = 2: median 1.39)", "-", dof=2),
-    Metric("ess", "particles"), Metric("mode_probability_cv", "probability"),
-    Metric("mode_probability_ccw", "probability"), Metric("mode_probability_cw", "probability"),
+    # the target's position NEES (2 dof): position_nees in every study's terms
+    Metric("nees_position", "1 (chi2 dof = 2)", "-", dof=2, quantity="position_nees"),
+    Metric("nees_position_lower", BAND, "-", quantity="position_nees_lower"),
+    Metric("nees_position_upper", BAND, "-", quantity="position_nees_upper"),
+    Metric("nees_position_median", "1 (chi2 dof = 2: median 1.39)", "-", dof=2, quantity="position_nees_median"),
+    Metric("ess", "particles"),
+    Metric("mode_probability_cv", "probability", quantity="mode_probability", component="cv"),
+    Metric("mode_probability_ccw", "probability", quantity="mode_probability", component="ccw"),
+    Metric("mode_probability_cw", "probability", quantity="mode_probability", component="cw"),
     Metric("track_loss_rate", "fraction of runs"), Metric("final_position_rmse", "m"), Metric("peak_median_error", "m"),
 )
 
