@@ -10,11 +10,13 @@ from __future__ import annotations
 import collections.abc
 import inspect
 import json
+import re
 import types
 import typing
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 from hydra.errors import InstantiationException
 from hydra.utils import instantiate
 from omegaconf import DictConfig, ListConfig, OmegaConf
@@ -26,13 +28,31 @@ def _is_int(value: Any) -> bool:
     return isinstance(value, int) and not isinstance(value, bool)
 
 
+# a variant key names files (estimates/<key>.parquet) and recording paths: letters, digits, _ and -,
+# starting with a letter or digit, so that no key can name a path outside the run folder
+SAFE_KEY = re.compile(r"[A-Za-z0-9][A-Za-z0-9_-]{0,63}")
+
+
+def check_variant_keys(keys: list[str]) -> None:
+    bad = [k for k in keys if not SAFE_KEY.fullmatch(str(k))]
+    if bad:
+        raise ConfigError(f"filters: variant key(s) {bad} are not allowed. A variant key names its files "
+                          f"(estimates/<key>.parquet), so it must be 1-64 letters, digits, '_' or '-', starting "
+                          f"with a letter or digit (e.g. filters.my_kf); the display name (filters.<key>.name) "
+                          f"may be any text.")
+
+
 def selected_variants(cfg: DictConfig) -> list[str]:
     available = list(cfg.filters.keys()) if cfg.get("filters") else []
+    check_variant_keys(available)
     wanted = cfg.get("variants")
     if wanted is None:
         return available
     if isinstance(wanted, str):
         wanted = [wanted]
+    if len(wanted) == 0:
+        raise ConfigError(f"variants: [] selects no variant, so there would be nothing to filter. Leave variants unset "
+                          f"(null) to run all of {available}, or name some, e.g. variants=[{available[0] if available else 'KEY'}].")
     unknown = [v for v in wanted if v not in available]
     if unknown:
         raise ConfigError(
@@ -48,6 +68,7 @@ def validate(cfg: DictConfig) -> None:
         check_measurement_kinds(cfg, [str(v) for v in (cfg.get("variants") or cfg.filters.keys())
                                       if v in cfg.filters])
     check_interpolations(cfg)
+    check_finite(cfg)
     missing = sorted(OmegaConf.missing_keys(cfg))
     if missing:
         raise ConfigError(f"missing mandatory config value(s) {missing}: select an experiment with "
@@ -108,6 +129,22 @@ def _check_windows(cfg: DictConfig, key: str) -> dict:
             raise ConfigError(f"metrics.{key}.{name}: {bounds!r} must be [first_step, last_step] with "
                               f"0 <= first_step <= last_step.")
     return windows
+
+
+def check_finite(cfg: DictConfig) -> None:
+    """Every number of an experiment is finite: a NaN initial state ran to the end with every estimate
+    NaN and no fault flagged; an infinite noise or bound is no setting either (null says 'none')."""
+    def walk(node: Any, key: str) -> None:
+        if isinstance(node, dict):
+            for k, v in node.items():
+                walk(v, f"{key}.{k}" if key else str(k))
+        elif isinstance(node, list):
+            for i, v in enumerate(node):
+                walk(v, f"{key}[{i}]")
+        elif isinstance(node, float) and not np.isfinite(node):
+            raise ConfigError(f"{key}: {node!r} is not allowed; every number of an experiment must be finite "
+                              f"(use null where a setting takes 'none', e.g. faults.nees_bound=null).")
+    walk(OmegaConf.to_container(cfg, resolve=True), "")
 
 
 def check_interpolations(cfg: DictConfig) -> None:

@@ -14,7 +14,9 @@ Bits (``FAULTS``):
 - ``nees_above_bound``: the NEES against the truth exceeds a configured bound (``faults.nees_bound``;
   a divergence test: a consistent filter's NEES is chi-square with n dof);
 - ``weights_underflow``: a particle filter reported that all its weights underflowed at that step
-  (``extras["weights_underflow"]``) and had to restart its weights.
+  (``extras["weights_underflow"]``) and had to restart its weights;
+- ``never_finite``: the run has no finite estimate at any step (its leading NaN never ends: a
+  filter fed NaN, or one that failed at its start); every step of the run is flagged.
 """
 
 from __future__ import annotations
@@ -26,7 +28,7 @@ import numpy as np
 from pipeline.metrics import Metric, nees, register
 
 FAULTS = {"nonfinite": 1, "asymmetric": 2, "not_positive_definite": 4, "nees_above_bound": 8,
-          "weights_underflow": 16}
+          "weights_underflow": 16, "never_finite": 32}
 
 
 @dataclass(frozen=True)
@@ -86,6 +88,9 @@ def fault_flags(state: np.ndarray, covariance: np.ndarray, checks: FaultChecks =
         flags |= np.where(np.asarray(weights_underflow, dtype=bool), FAULTS["weights_underflow"], 0).astype(np.uint8)
     while flags.ndim > 2:                      # targets etc.: a step is faulty if any of them is
         flags = np.bitwise_or.reduce(flags, axis=-1)
+    # "no track yet" that never ends: not one finite estimate in the whole run
+    never = ~finite_state.reshape(finite_state.shape[0], -1).any(axis=1)
+    flags |= np.where(never[:, None], FAULTS["never_finite"], 0).astype(np.uint8)
     return flags
 
 

@@ -31,7 +31,8 @@ from pipeline.metrics import unit_of, with_breakdown
 from pipeline.tables import ReportContext, format_summary
 from pipeline.stages import declare as declare_stages
 from pipeline.track import SingleTargetStudy, flags_from_table
-from pipeline.store import StageCache, atomic_write_parquet, atomic_write_text, package_version, publish, stable_hash, stage_key
+from pipeline.store import (StageCache, atomic_write_parquet, atomic_write_text, inside, package_version, publish,
+                            stable_hash, stage_key)
 
 log = logging.getLogger("pipeline")
 
@@ -188,7 +189,7 @@ class _Stages:
             value = from_frame(df, {k: str(v) for k, v in meta.items()})
             log.info("[%s] computed %s, %.2f s (+%.2f s to write the cache)", stage, describe, computed,
                      time.perf_counter() - started - computed)
-        publish(path, self.ctx.run_dir / publish_as)
+        publish(path, inside(self.ctx.run_dir, publish_as))
         return value, hit is not None, df
 
 

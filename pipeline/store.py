@@ -142,6 +142,15 @@ def read_table(path: Path) -> tuple[pl.DataFrame, dict[str, str]]:
     return pl.read_parquet(path), pl.read_parquet_metadata(path)
 
 
+def inside(folder: Path, relative: Path | str) -> Path:
+    """``folder / relative``, refused unless it resolves inside ``folder`` (a name from a config must
+    never place a file elsewhere, e.g. a variant key '../../x')."""
+    target = (Path(folder) / relative)
+    if not target.resolve().is_relative_to(Path(folder).resolve()) or Path(relative).is_absolute():
+        raise ValueError(f"{relative!s}: resolves outside {folder}; refused")
+    return target
+
+
 def publish(src: Path, dst: Path) -> None:
     """Place a cached file into a run directory: hard link if possible (no copy), else copy; atomic."""
     dst.parent.mkdir(parents=True, exist_ok=True)

@@ -1,0 +1,61 @@
+"""Issue 16 (reliability, round 2): the items fixed so far, each with the case that went wrong."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import polars as pl
+import pytest
+
+from pipeline.errors import ConfigError
+from pipeline.faults import FAULTS, fault_flags, fault_summary
+from pipeline.store import inside
+from tests.test_pipeline import cli, run_in_process
+
+
+def test_a_never_finite_run_is_flagged_not_taken_for_no_track_yet():
+    """Item 3: leading NaN means 'no track yet'; a run that never leaves it was counted as fine."""
+    state = np.full((2, 6, 4), np.nan)
+    covariance = np.full((2, 6, 4, 4), np.nan)
+    state[1, 2:], covariance[1, 2:] = 1.0, np.eye(4)
+    flags = fault_flags(state, covariance)
+    assert (flags[0] == FAULTS["never_finite"]).all() and (flags[1] == 0).all()
+    assert fault_summary(flags)["diverged_runs"] == 1
+
+
+def test_a_nan_initial_state_is_refused_before_any_stage(tmp_path):
+    """Item 3: 'scenario.initial_state=[nan,340,20000,340]' exited 0 with every estimate NaN."""
+    with pytest.raises(ConfigError, match=r"scenario.initial_state\[0\]: nan is not allowed; every number"):
+        run_in_process(tmp_path, "bad", "mc.runs=2", "scenario.initial_state=[nan,340,20000,340]")
+    assert not (tmp_path / "cache").exists()
+
+
+def test_a_variant_key_cannot_name_a_path_outside_the_run(tmp_path):
+    """Item 4: the key '../../../../escaped' wrote <artifacts>/escaped.parquet."""
+    conf = tmp_path / "conf_extra" / "experiment"
+    conf.mkdir(parents=True)
+    (conf / "escape.yaml").write_text(
+        "# @package _global_\ndefaults:\n  - /experiment/ao_vsimm_s1\n  - _self_\n"
+        "filters:\n  \"../../../../escaped\":\n    _target_: filters.imm.FSIMM\n    models: ${models}\n    name: ESC\n")
+    proc = cli(tmp_path, f"--config-dir={tmp_path / 'conf_extra'}", "experiment=escape", "mc.runs=2",
+               "scenario.steps=20", "record.enabled=false")
+    assert proc.returncode == 2 and "variant key(s) ['../../../../escaped'] are not allowed" in proc.stderr
+    assert not list(tmp_path.rglob("escaped*")) and not list(Path("/").glob("escaped.parquet"))
+    with pytest.raises(ValueError, match="resolves outside"):
+        inside(tmp_path / "run", Path("estimates") / "../../x.parquet")
+    assert inside(tmp_path / "run", Path("estimates") / "kf.parquet") == tmp_path / "run" / "estimates" / "kf.parquet"
+
+
+def test_an_empty_variant_list_is_refused_up_front(tmp_path):
+    """Item 10: variants=[] ran two stages, then failed on an empty concat."""
+    with pytest.raises(ConfigError, match=r"variants: \[\] selects no variant"):
+        run_in_process(tmp_path, "bad", "mc.runs=2", "variants=[]")
+    assert not (tmp_path / "cache").exists()
+
+
+def test_the_summary_counts_never_finite_runs(tmp_path):
+    out, _ = run_in_process(tmp_path, "ok", "mc.runs=2", "scenario.steps=20")
+    names = set(out.summary["metric"].to_list())
+    assert "fault_runs_never_finite" in names
+    assert out.summary.filter(pl.col("metric") == "fault_runs_never_finite")["value"].sum() == 0
