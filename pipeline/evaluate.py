@@ -155,7 +155,7 @@ def metrics_frame(time: np.ndarray, variants: Mapping[str, tuple[str, dict[str, 
     for key, (display, metrics) in variants.items():
         for metric, values in metrics.items():
             parts.append(pl.DataFrame({
-                "variant": [display] * K, "variant_key": [key] * K, "metric": [metric] * K,
+                "variant": [display] * K, "variant_key": [key] * K, "series": [metric] * K,
                 "step": np.arange(K, dtype=np.int32), "time": time.astype(float), "value": values.astype(float),
                 "n_runs": np.full(K, runs, dtype=np.int32),
             }))
@@ -196,7 +196,7 @@ def summary_rows(variants: Mapping[str, tuple[str, dict[str, np.ndarray]]], esti
     rows: list[dict] = []
 
     def add(key, display, metric, window, value):
-        rows.append({"variant": display, "variant_key": key, "metric": metric, "window": window,
+        rows.append({"variant": display, "variant_key": key, "series": metric, "window": window,
                      "value": None if value is None else float(value), "unit": unit_of(metric),
                      "n_runs": runs})
 
@@ -224,7 +224,7 @@ def summary_rows(variants: Mapping[str, tuple[str, dict[str, np.ndarray]]], esti
                 ref = ref_models[w.name]
                 if mine is not None and ref is not None and np.isfinite(mine) and np.isfinite(ref) and ref:
                     add(key, display, "models_pct_of_reference", w.name, 100.0 * mine / ref)
-    return pl.DataFrame(rows, schema={"variant": pl.String, "variant_key": pl.String, "metric": pl.String,
+    return pl.DataFrame(rows, schema={"variant": pl.String, "variant_key": pl.String, "series": pl.String,
                                       "window": pl.String, "value": pl.Float64, "unit": pl.String,
                                       "n_runs": pl.Int32})
 

@@ -41,9 +41,12 @@ class Metric:
     component: str | None = None      # the axis, bias element or mode it is of that quantity
 
 
-# The tidy columns of the metrics and summary tables: a name's quantity and its breakdown. A family's
-# pattern names its groups 'component', 'sensor' (1-based radar number) and 'target'.
-BREAKDOWN_COLUMNS = ("quantity", "component", "sensor", "target")
+# The tidy columns of the metrics and summary tables: ``metric`` (the quantity: position_rmse in every
+# study) with its breakdown ``component`` (axis, bias element, mode), ``sensor`` (radar number) and
+# ``target``; ``series`` is the unique name of the series (position_rmse_s2_t32), which the report's
+# queries, the recordings and the printed tables address. A family's pattern names its groups
+# 'component', 'sensor' and 'target'.
+BREAKDOWN_COLUMNS = ("metric", "component", "sensor", "target")
 
 
 _REGISTRY: dict[str, Metric] = {}
@@ -80,9 +83,9 @@ def lookup(name: str) -> Metric | None:
 
 
 def breakdown(name: str) -> tuple[str, str | None, int | None, int | None]:
-    """(quantity, component, sensor, target) of a metric name: position_rmse_s2_t32 -> (position_rmse,
+    """(metric, component, sensor, target) of a series name: position_rmse_s2_t32 -> (position_rmse,
     None, 2, 32), acceleration_rmse_x -> (acceleration_rmse, x, None, None); a name the registry does
-    not break down is its own quantity."""
+    not break down is its own metric."""
     if name in _REGISTRY:
         metric = _REGISTRY[name]
         return metric.quantity or name, metric.component, None, None
@@ -97,20 +100,20 @@ def breakdown(name: str) -> tuple[str, str | None, int | None, int | None]:
 
 
 def with_breakdown(table: "pl.DataFrame") -> "pl.DataFrame":
-    """``table`` (with a ``metric`` column) with the tidy columns quantity, component, sensor, target
-    after it: "the position RMSE of every study" is ``quantity = 'position_rmse'``, whatever the
-    study's breakdown by axis, radar or target."""
+    """``table`` (with a ``series`` column of series names) with the tidy columns metric, component,
+    sensor, target before it: "the position RMSE of every study" is ``metric = 'position_rmse'``,
+    whatever the study's breakdown by axis, radar or target."""
     import polars as pl
 
-    names = table["metric"].unique(maintain_order=True).to_list()
+    names = table["series"].unique(maintain_order=True).to_list()
     parts = [breakdown(n) for n in names]
-    lookup_frame = pl.DataFrame({"metric": names, "quantity": [p[0] for p in parts],
+    lookup_frame = pl.DataFrame({"series": names, "metric": [p[0] for p in parts],
                                  "component": [p[1] for p in parts], "sensor": [p[2] for p in parts],
                                  "target": [p[3] for p in parts]},
-                                schema={"metric": pl.String, "quantity": pl.String, "component": pl.String,
+                                schema={"series": pl.String, "metric": pl.String, "component": pl.String,
                                         "sensor": pl.Int32, "target": pl.Int32})
-    joined = table.join(lookup_frame, on="metric", how="left", maintain_order="left")
-    position = table.columns.index("metric") + 1
+    joined = table.join(lookup_frame, on="series", how="left", maintain_order="left")
+    position = table.columns.index("series")
     order = table.columns[:position] + list(BREAKDOWN_COLUMNS) + table.columns[position:]
     return joined.select(order)
 

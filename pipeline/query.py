@@ -64,13 +64,15 @@ TABLE_FILES = {"summary": SUMMARY_FILE, "metrics": METRICS_FILE}
 #: Columns every summary has (in this order); config columns follow, sorted by name.
 SUMMARY_COLUMNS: dict[str, pl.DataType] = {
     "run_id": pl.String(), "experiment": pl.String(), "status": pl.String(), "error": pl.String(),
-    "variant": pl.String(), "variant_key": pl.String(), "metric": pl.String(), "window": pl.String(),
+    "variant": pl.String(), "variant_key": pl.String(), "metric": pl.String(), "component": pl.String(),
+    "sensor": pl.Int32(), "target": pl.Int32(), "series": pl.String(), "window": pl.String(),
     "value": pl.Float64(), "unit": pl.String(), "n_runs": pl.Int32(), "config_hash": pl.String(),
     "overrides": pl.String(), "sweep": pl.String(), "job_num": pl.Int32(),
 }
 METRICS_COLUMNS: dict[str, pl.DataType] = {
     "run_id": pl.String(), "experiment": pl.String(), "variant": pl.String(),
-    "variant_key": pl.String(), "metric": pl.String(), "step": pl.Int32(), "time": pl.Float64(),
+    "variant_key": pl.String(), "metric": pl.String(), "component": pl.String(), "sensor": pl.Int32(),
+    "target": pl.Int32(), "series": pl.String(), "step": pl.Int32(), "time": pl.Float64(),
     "value": pl.Float64(), "n_runs": pl.Int32(),
 }
 FIXED_COLUMNS = {"summary": SUMMARY_COLUMNS, "metrics": METRICS_COLUMNS}
@@ -534,7 +536,7 @@ def query(sql: str, root: Path | str = "artifacts", sweep: Path | str | None = N
     """Run ``sql`` (polars SQL) over ``summary``, ``metrics`` and ``runs``; return a DataFrame.
 
     Example: ``query('SELECT variant, "filters.vsimm.t1_mu", AVG(value) FROM summary WHERE
-    metric = \\'acceleration_rmse_x\\' AND "window" = \\'all\\' GROUP BY ALL ORDER BY ALL')``.
+    series = \\'acceleration_rmse_x\\' AND "window" = \\'all\\' GROUP BY ALL ORDER BY ALL')``.
 
     :raises QueryError: with a user-facing message for bad input or a failing query.
     """
@@ -609,7 +611,7 @@ def render(df: pl.DataFrame, fmt: str, max_rows: int | None = DEFAULT_MAX_ROWS) 
 
 # ---- CLI ----------------------------------------------------------------------------------------
 EXAMPLE_SQL = ('SELECT variant, "filters.vsimm.t1_mu", AVG(value) FROM summary '
-               "WHERE metric = 'acceleration_rmse_x' AND \"window\" = 'all' "
+               "WHERE series = 'acceleration_rmse_x' AND \"window\" = 'all' "
                "GROUP BY ALL ORDER BY ALL")
 
 DESCRIPTION = """\
@@ -622,23 +624,23 @@ series), runs (one row per run/job from status.json; the `list` frame)."""
 SQL_EPILOG = """\
 quoting:
   Column names with dots, or that are SQL keywords, go in double quotes: "filters.vsimm.t1_mu",
-  "mc.runs", "window". String literals go in single quotes: metric = 'position_rmse'.
+  "mc.runs", "window". String literals go in single quotes: series = 'position_rmse'.
   In a POSIX shell, wrap the whole query in double quotes and escape the inner double quotes:
     mtt-query sql "SELECT variant, \\"filters.vsimm.t1_mu\\", AVG(value) FROM summary
-                   WHERE metric = 'acceleration_rmse_x' AND \\"window\\" = 'all'
+                   WHERE series = 'acceleration_rmse_x' AND \\"window\\" = 'all'
                    GROUP BY ALL ORDER BY ALL"
   or avoid shell quoting altogether with a here-document on stdin:
     mtt-query sql - <<'SQL'
     SELECT variant, "filters.vsimm.t1_mu", AVG(value) AS rmse FROM summary
-    WHERE metric = 'acceleration_rmse_x' AND "window" = 'all' GROUP BY ALL ORDER BY ALL
+    WHERE series = 'acceleration_rmse_x' AND "window" = 'all' GROUP BY ALL ORDER BY ALL
     SQL
   or put the query in a file: mtt-query sql --file q.sql
 
 more examples:
-  mtt-query sql --sweep multirun/2026-11-22_10-00-00_000000 "SELECT metric, variant, \\
+  mtt-query sql --sweep multirun/2026-11-22_10-00-00_000000 "SELECT series, variant, \\
       AVG(value) FROM summary WHERE status = 'ok' GROUP BY ALL ORDER BY ALL"
   mtt-query sql "SELECT run_id, error FROM runs WHERE status = 'failed'"
-  mtt-query sql --format csv "SELECT * FROM metrics WHERE metric = 'position_rmse'" > pos.csv
+  mtt-query sql --format csv "SELECT * FROM metrics WHERE series = 'position_rmse'" > pos.csv
 
 The SQL dialect is polars' (PostgreSQL-like; GROUP BY ALL, ORDER BY ALL, QUALIFY, ...)."""
 

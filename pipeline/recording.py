@@ -388,13 +388,13 @@ def metric_time_series(metrics, experiment: str, variant_keys: list[str], displa
         return {}
     import polars as pl
 
-    required = {"variant_key", "metric", "step", "time", "value"}
+    required = {"variant_key", "series", "step", "time", "value"}
     missing = required - set(metrics.columns)
     if missing:
         raise ValueError(f"metrics frame lacks columns {sorted(missing)}; it has {metrics.columns}")
     if "experiment" in metrics.columns and metrics["experiment"].n_unique() > 1:
         metrics = metrics.filter(pl.col("experiment") == experiment)
-    dupes = metrics.group_by("variant_key", "metric", "step").len().filter(pl.col("len") > 1)
+    dupes = metrics.group_by("variant_key", "series", "step").len().filter(pl.col("len") > 1)
     if dupes.height:
         raise ValueError(f"metrics frame has {dupes.height} duplicate (variant_key, metric, step) rows, "
                          f"e.g. {dupes.row(0, named=True)}; pass one experiment's Monte Carlo averages")
@@ -403,8 +403,8 @@ def metric_time_series(metrics, experiment: str, variant_keys: list[str], displa
     for i, key in enumerate(keys):
         colours.setdefault(key, variant_colour(i))
     out: dict = {}
-    for metric in metrics["metric"].unique(maintain_order=True).to_list():
-        part = metrics.filter(pl.col("metric") == metric)
+    for metric in metrics["series"].unique(maintain_order=True).to_list():
+        part = metrics.filter(pl.col("series") == metric)
         for key in keys:
             rows = part.filter(pl.col("variant_key") == key).sort("step")
             if rows.height == 0:

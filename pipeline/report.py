@@ -15,7 +15,7 @@ Experiments declare their part in their YAML under ``report`` (next to ``report.
 
 ``report.queries``  name -> SQL over this run's tables ``summary`` and ``metrics`` (the Parquet
     files; NaN read as NULL so AVG skips it) and ``wide`` (the summary pivoted: one row per window,
-    '-' for window-free values, one column per "<variant_key>:<metric>");
+    '-' for window-free values, one column per "<variant_key>:<series>");
 ``report.figures``  name -> {title, query (a query name or SQL), x, y, series, lower, upper, kind
     (line | step | bar), xlabel, ylabel, logy, reference: [{label, x: [...], y: [...]}]}: one line
     per value of ``series`` (the paper's points drawn as markers from ``reference``);
@@ -51,38 +51,38 @@ OPTIONAL_TARGET_KEYS = {"timed"}      # timed: true = judged on wall time, which
 FINDING_KEYS = {"finding", "paper", "query"}
 KINDS = ("line", "step", "bar")
 
-# Built-in named queries: the limits section of every report. ``{metric}`` is filled per figure.
+# Built-in named queries: the limits section of every report. ``{series}`` is filled per figure.
 BUILTIN_QUERIES = {
     "consistency": """
-WITH v AS (SELECT variant, metric, step, value FROM metrics),
-lo AS (SELECT variant, REPLACE(metric, '_lower', '') AS metric, step, value AS lower
-       FROM metrics WHERE ENDS_WITH(metric, '_lower')),
-up AS (SELECT variant, REPLACE(metric, '_upper', '') AS metric, step, value AS upper
-       FROM metrics WHERE ENDS_WITH(metric, '_upper'))
-SELECT v.variant, v.metric, AVG(v.value) AS mean, AVG(lo.lower) AS band_lower, AVG(up.upper) AS band_upper,
+WITH v AS (SELECT variant, series, step, value FROM metrics),
+lo AS (SELECT variant, REPLACE(series, '_lower', '') AS series, step, value AS lower
+       FROM metrics WHERE ENDS_WITH(series, '_lower')),
+up AS (SELECT variant, REPLACE(series, '_upper', '') AS series, step, value AS upper
+       FROM metrics WHERE ENDS_WITH(series, '_upper'))
+SELECT v.variant, v.series, AVG(v.value) AS mean, AVG(lo.lower) AS band_lower, AVG(up.upper) AS band_upper,
        AVG(CASE WHEN v.value BETWEEN lo.lower AND up.upper THEN 1.0 ELSE 0.0 END) AS share_in_band,
        COUNT(*) AS steps
-FROM v JOIN lo ON v.variant = lo.variant AND v.metric = lo.metric AND v.step = lo.step
-JOIN up ON v.variant = up.variant AND v.metric = up.metric AND v.step = up.step
+FROM v JOIN lo ON v.variant = lo.variant AND v.series = lo.series AND v.step = lo.step
+JOIN up ON v.variant = up.variant AND v.series = up.series AND v.step = up.step
 WHERE v.value IS NOT NULL AND lo.lower IS NOT NULL
-GROUP BY v.variant, v.metric ORDER BY v.metric, v.variant""",
+GROUP BY v.variant, v.series ORDER BY v.series, v.variant""",
     "consistency_by_step": """
-WITH v AS (SELECT variant, metric, step, time, value FROM metrics WHERE metric = '{metric}'),
-lo AS (SELECT variant, step, value AS lower FROM metrics WHERE metric = '{metric}_lower'),
-up AS (SELECT variant, step, value AS upper FROM metrics WHERE metric = '{metric}_upper')
+WITH v AS (SELECT variant, series, step, time, value FROM metrics WHERE series = '{series}'),
+lo AS (SELECT variant, step, value AS lower FROM metrics WHERE series = '{series}_lower'),
+up AS (SELECT variant, step, value AS upper FROM metrics WHERE series = '{series}_upper')
 SELECT v.variant, v.time, v.value, lo.lower, up.upper
 FROM v JOIN lo ON v.variant = lo.variant AND v.step = lo.step
 JOIN up ON v.variant = up.variant AND v.step = up.step
 ORDER BY v.variant, v.time""",
     "bound_ratio_by_window": """
-SELECT variant, REPLACE(metric, 'position_rmse_over_', '') AS bound, "window", value AS rmse_over_bound FROM summary
-WHERE metric LIKE 'position_rmse_over_bound%' AND "window" IS NOT NULL ORDER BY bound, "window", variant""",
+SELECT variant, REPLACE(series, 'position_rmse_over_', '') AS bound, "window", value AS rmse_over_bound FROM summary
+WHERE series LIKE 'position_rmse_over_bound%' AND "window" IS NOT NULL ORDER BY bound, "window", variant""",
     "bound_ratio_by_step": """
-SELECT variant || CASE WHEN metric = 'position_rmse_over_bound' THEN '' ELSE ' (' || REPLACE(metric, 'position_rmse_over_', '') || ')' END
-       AS series, time, value
-FROM metrics WHERE metric LIKE 'position_rmse_over_bound%' ORDER BY metric, variant, time""",
+SELECT variant || CASE WHEN series = 'position_rmse_over_bound' THEN '' ELSE ' (' || REPLACE(series, 'position_rmse_over_', '') || ')' END
+       AS line, time, value
+FROM metrics WHERE series LIKE 'position_rmse_over_bound%' ORDER BY line, time""",
     "compute": """
-SELECT variant, value AS compute_seconds FROM summary WHERE metric = 'compute_seconds' ORDER BY variant""",
+SELECT variant, value AS compute_seconds FROM summary WHERE series = 'compute_seconds' ORDER BY variant""",
 }
 
 
@@ -218,7 +218,7 @@ class RunTables:
     status: Mapping[str, Any]
     summary: pl.DataFrame
     metrics: pl.DataFrame
-    wide: pl.DataFrame          # the summary pivoted: one row per window, one column per "<variant_key>:<metric>"
+    wide: pl.DataFrame          # the summary pivoted: one row per window, one column per "<variant_key>:<series>"
 
     def query(self, sql: str) -> pl.DataFrame:
         context = pl.SQLContext(summary=self.summary, metrics=self.metrics, wide=self.wide, eager=True)
@@ -249,11 +249,11 @@ def load_run(run_dir: Path) -> RunTables:
 
 def pivot_summary(summary: pl.DataFrame) -> pl.DataFrame:
     """The summary one row per window ('-' for window-free values such as compute_seconds), one
-    column per "<variant_key>:<metric>": targets compare variants without self-joins."""
+    column per "<variant_key>:<series>": targets compare variants without self-joins."""
     if summary.height == 0:
         return pl.DataFrame(schema={"window": pl.String})
     return (summary.with_columns(pl.col("window").fill_null("-"),
-                                 (pl.col("variant_key") + ":" + pl.col("metric")).alias("column"))
+                                 (pl.col("variant_key") + ":" + pl.col("series")).alias("column"))
             .pivot(on="column", index="window", values="value", aggregate_function="first"))
 
 
@@ -340,23 +340,23 @@ def draw_figure(df: pl.DataFrame, spec: FigureSpec, path: Path) -> None:
 
 def limit_figures(tables: RunTables) -> list[FigureSpec]:
     """One figure per consistency metric (X with X_lower / X_upper) and one of RMSE / sqrt(PCRLB)."""
-    names = set(tables.metrics["metric"].unique().to_list()) if tables.metrics.height else set()
+    names = set(tables.metrics["series"].unique().to_list()) if tables.metrics.height else set()
     out = []
     for metric in sorted(m for m in names if f"{m}_lower" in names and f"{m}_upper" in names):
         out.append(FigureSpec(f"limit_{metric}", f"{metric}: run average per step, shaded: its χ² 95 % band",
-                              BUILTIN_QUERIES["consistency_by_step"].replace("{metric}", metric), "time", "value",
+                              BUILTIN_QUERIES["consistency_by_step"].replace("{series}", metric), "time", "value",
                               "variant", "lower", "upper", "line", "time [s]", metric, metric.startswith(("nees", "nis"))
                               and _spread(tables, metric) > 30))
     if "position_rmse_over_bound" in names:
         out.append(FigureSpec("limit_rmse_over_bound", "position RMSE / sqrt(PCRLB) (1 = at the bound)",
-                              BUILTIN_QUERIES["bound_ratio_by_step"], "time", "value", "series", kind="line",
+                              BUILTIN_QUERIES["bound_ratio_by_step"], "time", "value", "line", kind="line",
                               xlabel="time [s]", ylabel="RMSE / sqrt(PCRLB)",
                               logy="position_rmse_over_bound_model" in names))
     return out
 
 
 def _spread(tables: RunTables, metric: str) -> float:
-    values = tables.metrics.filter(pl.col("metric") == metric)["value"].drop_nulls()
+    values = tables.metrics.filter(pl.col("series") == metric)["value"].drop_nulls()
     if values.len() == 0 or values.min() is None or values.min() <= 0:
         return 1.0
     return float(values.max() / values.min())

@@ -142,9 +142,9 @@ def build_report_tables(cfg: DictConfig) -> dict[str, Any]:
 
 
 def failure_summary(ctx: RunContext, experiment: str, error: str, resolved: dict | None) -> pl.DataFrame:
-    base = pl.DataFrame({"variant": [None], "variant_key": [None], "metric": [None], "window": [None],
+    base = pl.DataFrame({"variant": [None], "variant_key": [None], "series": [None], "window": [None],
                          "value": [None], "unit": [None], "n_runs": [None]},
-                        schema={"variant": pl.String, "variant_key": pl.String, "metric": pl.String,
+                        schema={"variant": pl.String, "variant_key": pl.String, "series": pl.String,
                                 "window": pl.String, "value": pl.Float64, "unit": pl.String, "n_runs": pl.Int32})
     df = _provenance(base, ctx, experiment, stable_hash(resolved) if resolved else "", "failed", error)
     if resolved:
@@ -349,10 +349,10 @@ def evaluate_stage(cfg: DictConfig, study: Study, sensor: Any, truth: Any, estim
     rows = study.extra_summary(truth, estimates, display, runs, ref if ref in variants else None, sensor, per_variant)
     if rows:
         summary = pl.concat([summary, pl.DataFrame(rows, schema=summary.schema)])
-    fault_rows = [{"variant": display[v], "variant_key": v, "metric": name, "window": None, "value": float(count),
+    fault_rows = [{"variant": display[v], "variant_key": v, "series": name, "window": None, "value": float(count),
                    "unit": unit_of(name), "n_runs": runs} for v in variants for name, count in faults[v].items()]
     summary = pl.concat([summary, pl.DataFrame(fault_rows, schema=summary.schema)])
-    # the tidy columns: quantity, component, sensor, target (pipeline.metrics.breakdown)
+    # the tidy columns metric (the quantity), component, sensor, target (pipeline.metrics.breakdown)
     return with_breakdown(metrics_frame(truth.time, per_variant, runs)), with_breakdown(summary)
 
 

@@ -23,21 +23,21 @@ from pipeline.metrics import format_value, printed_columns
 
 def format_summary(summary: pl.DataFrame, experiment: str, runs: int) -> str:
     """Variant x metric table, one block per window (window-free metrics shown in every block)."""
-    shown = {m for m, _ in printed_columns(set(summary["metric"].unique().to_list()))}
-    windows = [w for w in summary.filter(pl.col("metric").is_in(shown))["window"].unique(maintain_order=True).to_list()
+    shown = {m for m, _ in printed_columns(set(summary["series"].unique().to_list()))}
+    windows = [w for w in summary.filter(pl.col("series").is_in(shown))["window"].unique(maintain_order=True).to_list()
                if w is not None and " by step " not in w]
     variants = summary["variant"].unique(maintain_order=True).to_list()
     lines = [f"{experiment}: {runs} Monte Carlo runs"]
     for window in windows or [None]:
         in_window = pl.lit(False) if window is None else pl.col("window") == window
         rows = summary.filter(pl.col("window").is_null() | in_window | pl.col("window").str.contains(" by step "))
-        cols = printed_columns(rows["metric"].to_list())       # the registry's labels, in its order
+        cols = printed_columns(rows["series"].to_list())       # the registry's labels, in its order
         header = ["variant"] + [label for _, label in cols]
         table = [header]
         for v in variants:
             row = [v]
             for m, _ in cols:
-                hit = rows.filter((pl.col("variant") == v) & (pl.col("metric") == m))["value"]
+                hit = rows.filter((pl.col("variant") == v) & (pl.col("series") == m))["value"]
                 row.append("" if hit.len() == 0 or hit[0] is None else format_value(m, hit[0]))
             table.append(row)
         widths = [max(len(r[i]) for r in table) for i in range(len(header))]
@@ -177,7 +177,7 @@ class BinnedTable:
         """ours[row][column][metric]; None where the variant did not run or has no such metric."""
         series: dict[tuple[str, str], np.ndarray] = {}
         if ctx.metrics.height:
-            for (variant, metric), part in ctx.metrics.group_by(["variant_key", "metric"]):
+            for (variant, metric), part in ctx.metrics.group_by(["variant_key", "series"]):
                 part = part.sort("step")
                 values = np.full(int(part["step"].max()) + 1, np.nan)
                 values[part["step"].to_numpy()] = part["value"].to_numpy()
@@ -316,7 +316,7 @@ class SummaryTable:
         return tuple(self.variants)
 
     def value(self, ctx: ReportContext, variant: str, row: _SummaryRow) -> float | None:
-        hit = ctx.summary.filter((pl.col("variant_key") == variant) & (pl.col("metric") == row.metric)
+        hit = ctx.summary.filter((pl.col("variant_key") == variant) & (pl.col("series") == row.metric)
                                  & (pl.col("window") == row.window))["value"]
         if hit.len() == 0 or hit[0] is None or math.isnan(hit[0]):
             return None

@@ -110,8 +110,8 @@ def test_studies_001_and_000_report_rmse_over_the_bound(tmp_path):
         m = outcome.metrics
         for key in cfg.filters:
             mine = m.filter(pl.col("variant_key") == key)
-            bound = mine.filter(pl.col("metric") == "position_bound").sort("step")["value"].to_numpy()
-            ratio = mine.filter(pl.col("metric") == "position_rmse_over_bound").sort("step")["value"].to_numpy()
-            rmse = mine.filter(pl.col("metric") == "position_rmse").sort("step")["value"].to_numpy()
+            bound = mine.filter(pl.col("series") == "position_bound").sort("step")["value"].to_numpy()
+            ratio = mine.filter(pl.col("series") == "position_rmse_over_bound").sort("step")["value"].to_numpy()
+            rmse = mine.filter(pl.col("series") == "position_rmse").sort("step")["value"].to_numpy()
             assert np.all(np.isfinite(bound[1:])) and np.all(bound[1:] > 0), (experiment, key)
             np.testing.assert_allclose(ratio[2:], rmse[2:] / bound[2:])

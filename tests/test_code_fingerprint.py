@@ -74,7 +74,7 @@ def run_cli(tmp_path: Path, user: Path) -> subprocess.CompletedProcess:
 def cv_position_rmse(tmp_path: Path) -> float:
     newest = max((tmp_path / "artifacts" / "runs" / "ao_vsimm_s1").iterdir())
     summary = pl.read_parquet(newest / "summary.parquet")
-    row = summary.filter((pl.col("variant_key") == "cv") & (pl.col("metric") == "position_rmse")
+    row = summary.filter((pl.col("variant_key") == "cv") & (pl.col("series") == "position_rmse")
                          & (pl.col("window") == "all"))
     return float(row["value"][0])
 

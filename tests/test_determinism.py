@@ -31,7 +31,7 @@ def content(run_dir: Path) -> dict[str, pl.DataFrame]:
         df = pl.read_parquet(path)
         df = df.drop([c for c in df.columns if c in PROVENANCE or c.startswith(("hydra", "record."))])
         if "metric" in df.columns:
-            df = df.filter(~pl.col("metric").is_in(TIMINGS))
+            df = df.filter(~pl.col("series").is_in(TIMINGS))
         tables[path.relative_to(run_dir).as_posix()] = df
     return tables
 

@@ -106,11 +106,11 @@ def test_the_pipeline_flags_injected_faults_per_run_and_step_and_counts_them(tmp
     assert (pl.read_parquet(ctx.run_dir / "estimates" / "vsimm.parquet")["fault"] == 0).all()
 
     def count(variant_key, metric):
-        return outcome.summary.filter((pl.col("variant_key") == variant_key) & (pl.col("metric") == metric))["value"][0]
+        return outcome.summary.filter((pl.col("variant_key") == variant_key) & (pl.col("series") == metric))["value"][0]
     assert count("fsimm", "diverged_runs") == 3 and count("vsimm", "diverged_runs") == 0
     assert count("fsimm", "fault_runs_nonfinite") == 1 and count("fsimm", "fault_runs_asymmetric") == 1
     # the other runs' results are kept: the RMSE of the diverged steps comes from the 4 healthy runs
-    rmse = outcome.metrics.filter((pl.col("variant_key") == "fsimm") & (pl.col("metric") == "position_rmse"))
+    rmse = outcome.metrics.filter((pl.col("variant_key") == "fsimm") & (pl.col("series") == "position_rmse"))
     assert rmse.filter(pl.col("step") >= 20)["value"].is_finite().all()
 
 
@@ -164,5 +164,5 @@ def test_the_nees_bound_flags_diverging_steps_through_the_pipeline(tmp_path):
     table = pl.read_parquet(tight.run_dir / "estimates" / "fsimm.parquet")
     started = table.filter(pl.col("x").arr.first().is_not_nan())
     assert (started["fault"] == FAULTS["nees_above_bound"]).all()
-    diverged = outcome.summary.filter(pl.col("metric") == "fault_runs_nees_above_bound")["value"][0]
+    diverged = outcome.summary.filter(pl.col("series") == "fault_runs_nees_above_bound")["value"][0]
     assert diverged == 4

@@ -76,10 +76,10 @@ def test_every_variant_reports_nis_and_rmse_over_the_bound(tmp_path):
     entities = set(entity_index(read_chunks(ctx.run_dir / "recording.rrd")))
     for key in ("ammpf", "sir_mm", "ekf"):
         mine = metrics.filter(pl.col("variant_key") == key)
-        have = set(mine["metric"])
+        have = set(mine["series"])
         assert {"nis", "nis_lower", "nis_upper", "position_bound", "position_bound_model",
                 "position_rmse_over_bound"} <= have, (key, sorted(have))
-        nis = mine.filter((pl.col("metric") == "nis") & (pl.col("step") >= 1))["value"]
+        nis = mine.filter((pl.col("series") == "nis") & (pl.col("step") >= 1))["value"]
         assert nis.is_finite().all() and (nis > 0).all()
         assert {f"/metrics/nis/{key}", f"/metrics/nis/{key}_chi2_upper", f"/metrics/position_rmse_over_bound/{key}",
                 f"/metrics/nees_position/{key}_chi2_lower"} <= entities, key

@@ -47,24 +47,24 @@ def test_nees_by_hand():
 @pytest.mark.parametrize("experiment, smoke", smoke_experiments())
 def test_every_metric_a_study_writes_is_registered_with_a_unit(tmp_path, experiment, smoke):
     out, _ = run_in_process(tmp_path, "run", f"experiment={experiment}", "mc.runs=2", *smoke)
-    names = set(out.metrics["metric"].unique().to_list()) | set(out.summary["metric"].unique().to_list())
+    names = set(out.metrics["series"].unique().to_list()) | set(out.summary["series"].unique().to_list())
     unregistered = sorted(n for n in names if lookup(n) is None)
     assert not unregistered, f"{experiment}: metrics without a registry entry: {unregistered}"
-    units = out.summary.filter(pl.col("unit") == "")["metric"].unique().to_list()
+    units = out.summary.filter(pl.col("unit") == "")["series"].unique().to_list()
     assert not units, f"{experiment}: summary rows without a unit: {units}"
 
 
 def test_one_query_finds_the_position_rmse_of_every_study(tmp_path):
     """'Lowest position RMSE per experiment' silently dropped study 002, whose names carried the radar
-    and target (position_rmse_s2_t32): the tidy columns quantity / component / sensor / target say it."""
+    and target (position_rmse_s2_t32): metric is now the quantity, with component / sensor / target columns."""
     from pipeline.query import query
     studies = smoke_experiments()
     for experiment, smoke in studies:
         run_in_process(tmp_path, f"{experiment}/run", f"experiment={experiment}", "mc.runs=2", *smoke)
-    best = query("SELECT experiment, MIN(value) AS lowest FROM summary WHERE quantity = 'position_rmse' "
+    best = query("SELECT experiment, MIN(value) AS lowest FROM summary WHERE metric = 'position_rmse' "
                  "AND component IS NULL GROUP BY experiment "
                  "ORDER BY experiment", root=tmp_path)
     assert best["experiment"].to_list() == sorted(e for e, _ in studies)
-    per_target = query("SELECT DISTINCT sensor, target FROM summary WHERE metric = 'position_rmse_s2_t32'",
+    per_target = query("SELECT DISTINCT sensor, target FROM summary WHERE series = 'position_rmse_s2_t32'",
                        root=tmp_path)
     assert per_target.rows() == [(2, 32)]

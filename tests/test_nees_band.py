@@ -66,7 +66,7 @@ def test_the_band_is_in_the_metrics_and_beside_the_nees_in_the_recording(tmp_pat
         cfg = compose("config", overrides=[f"paths.artifacts={tmp_path}", *overrides])
     ctx = RunContext(tmp_path / "runs" / "band", tmp_path, overrides)
     outcome = run_experiment(cfg, ctx)
-    metrics = set(outcome.metrics["metric"].unique())
+    metrics = set(outcome.metrics["series"].unique())
     assert {"nees", "nees_lower", "nees_upper"} <= metrics
     entities = entity_index(read_chunks(ctx.run_dir / "recording.rrd"))
     assert {"/metrics/nees/fsimm", "/metrics/nees/fsimm_chi2_lower", "/metrics/nees/fsimm_chi2_upper"} <= set(entities)

@@ -97,9 +97,9 @@ def test_every_variant_of_studies_001_and_000_has_nis_with_its_band_in_the_metri
     metrics = pl.read_parquet(ctx.run_dir / "metrics.parquet")
     entities = set(entity_index(read_chunks(ctx.run_dir / "recording.rrd")))
     for key in cfg.filters:
-        have = set(metrics.filter(pl.col("variant_key") == key)["metric"].unique())
+        have = set(metrics.filter(pl.col("variant_key") == key)["series"].unique())
         assert {"nis", "nis_lower", "nis_upper"} <= have, (key, sorted(have))
         assert {f"/metrics/nis/{key}", f"/metrics/nis/{key}_chi2_lower", f"/metrics/nis/{key}_chi2_upper"} <= entities
-    nis = metrics.filter(pl.col("metric") == "nis")
+    nis = metrics.filter(pl.col("series") == "nis")
     assert nis.filter(pl.col("step") >= 2)["value"].is_finite().all()
     assert (nis.filter(pl.col("step") >= 2)["value"] > 0).all()

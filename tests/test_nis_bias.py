@@ -239,5 +239,5 @@ def test_a_tiny_async_bias_run_has_nis_metrics_for_every_variant(tmp_path: Path)
     out, _ = run_study(tmp_path, "nis", "scenario.duration=10", "mc.runs=2")
     metrics = out.metrics
     for key in ("local", "proposed", "exx"):
-        have = set(metrics.filter(metrics["variant_key"] == key)["metric"].to_list())
+        have = set(metrics.filter(metrics["variant_key"] == key)["series"].to_list())
         assert {"nis_s1", "nis_s1_lower", "nis_s1_upper", "nis_s2", "nis_s2_lower", "nis_s2_upper"} <= have, key

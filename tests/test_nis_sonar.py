@@ -217,13 +217,13 @@ def test_sonar_case1_metrics_have_nis_with_its_band_for_every_variant(case1_run)
     for key in variants:
         mine = metrics.filter(pl.col("variant_key") == key)
         for name in ("nis", "nis_lower", "nis_upper"):
-            values = mine.filter(pl.col("metric") == name).sort("step")["value"].to_numpy()
+            values = mine.filter(pl.col("series") == name).sort("step")["value"].to_numpy()
             assert values.size == 201, (key, name)
             assert np.isnan(values[0]) and np.isfinite(values[1:]).all(), (key, name)   # no update at scan 0
-        band = {n: mine.filter(pl.col("metric") == n).sort("step")["value"].to_numpy()[1:]
+        band = {n: mine.filter(pl.col("series") == n).sort("step")["value"].to_numpy()[1:]
                 for n in ("nis_lower", "nis_upper")}
         assert (band["nis_lower"] < band["nis_upper"]).all()
-    summary = out.summary.filter(pl.col("metric") == "nis")
+    summary = out.summary.filter(pl.col("series") == "nis")
     assert set(summary["variant_key"]) == set(variants)
 
 

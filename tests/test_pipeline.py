@@ -57,7 +57,7 @@ def test_default_job_writes_every_file(tmp_path):
     assert json.loads((run_dir / "status.json").read_text())["status"] == "ok"
     metrics = pl.read_parquet(run_dir / "metrics.parquet")
     assert {"acceleration_rmse_x", "acceleration_rmse_y", "position_rmse", "velocity_rmse", "nees",
-            "models_evaluated"} <= set(metrics["metric"])
+            "models_evaluated"} <= set(metrics["series"])
 
 
 def _mtimes(root: Path) -> dict[str, int]:
@@ -171,7 +171,7 @@ def test_multirun_sweep_yields_one_summary_per_job_with_the_swept_value(tmp_path
     assert proc.returncode == 0, proc.stderr
     from pipeline.query import query
     rows = query("""SELECT "filters.vsimm.t1_mu" AS t1_mu, value FROM summary
-                    WHERE variant = 'VSIMM' AND metric = 'acceleration_rmse_x' AND "window" = 'all'
+                    WHERE variant = 'VSIMM' AND series = 'acceleration_rmse_x' AND "window" = 'all'
                     ORDER BY t1_mu""", root=tmp_path)
     assert rows["t1_mu"].to_list() == [0.8, 0.85] and rows["value"].is_finite().all()
     (sweep,) = (tmp_path / "multirun").iterdir()

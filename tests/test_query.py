@@ -48,12 +48,12 @@ def _summary(root: Path, run_dir: Path, experiment: str, config: dict, values: d
     for (variant, metric, window), v in values.items():
         rows.append({"run_id": rid, "experiment": experiment, "status": "ok", "error": None,
                      "variant": variant, "variant_key": variant.lower().replace("-", "_"),
-                     "metric": metric, "window": window, "value": float(v),
+                     "series": metric, "window": window, "value": float(v),
                      "unit": "m/s^2" if metric.startswith("acc") else "m"})
     df = pl.DataFrame(rows, schema={"run_id": pl.String, "experiment": pl.String,
                                     "status": pl.String, "error": pl.String,
                                     "variant": pl.String, "variant_key": pl.String,
-                                    "metric": pl.String, "window": pl.String,
+                                    "series": pl.String, "window": pl.String,
                                     "value": pl.Float64, "unit": pl.String})
     df = df.with_columns(
         pl.lit(n_runs, dtype=pl.Int32).alias("n_runs"), pl.lit("cfg0").alias("config_hash"),
@@ -67,7 +67,7 @@ def _summary(root: Path, run_dir: Path, experiment: str, config: dict, values: d
 def _metrics(root: Path, run_dir: Path, experiment: str, variants, steps: int = 5) -> None:
     rid = run_dir.relative_to(root).as_posix()
     rows = [{"run_id": rid, "experiment": experiment, "variant": v,
-             "variant_key": v.lower().replace("-", "_"), "metric": "position_rmse", "step": k,
+             "variant_key": v.lower().replace("-", "_"), "series": "position_rmse", "step": k,
              "time": 0.5 * k, "value": 1.0 + 0.1 * k, "n_runs": 20}
             for v in variants for k in range(steps)]
     pl.DataFrame(rows, schema=q.METRICS_COLUMNS).write_parquet(run_dir / "metrics.parquet")
@@ -121,7 +121,7 @@ def make_tree(root: Path) -> Path:
                     started="2026-11-21T08:02:00+00:00", overrides=ov, sweep=SWEEP, job_num=job)
             pl.DataFrame({"run_id": [f"{SWEEP}/2"], "experiment": ["ao_vsimm_sweep"],
                           "status": ["failed"], "error": [TRACEBACK], "variant": [None],
-                          "variant_key": [None], "metric": [None], "window": [None],
+                          "variant_key": [None], "series": [None], "window": [None],
                           "value": [None], "unit": [None], "n_runs": [20],
                           "config_hash": ["cfg2"], "overrides": [" ".join(ov)], "sweep": [SWEEP],
                           "job_num": [2], **{k: [v] for k, v in cfg.items()}}
@@ -327,7 +327,7 @@ def test_damaged_data_pages_skipped_with_warning(root, capsys):
     raw[start:start + 16] = bytes(b ^ 0xFF for b in raw[start:start + 16])  # has no checksum)
     path.write_bytes(bytes(raw))
     # COUNT(*)/COUNT(col) are answered from footer statistics; reading the values hits the damage
-    code, out, err = run_cli(capsys, "sql", "SELECT metric FROM summary WHERE metric IS NOT NULL",
+    code, out, err = run_cli(capsys, "sql", "SELECT series FROM summary WHERE series IS NOT NULL",
                              "--root", str(root), "--format", "csv")
     assert code == 0 and len(out.split()) == 1 + 26
     assert f"skipping corrupt {path}" in err

@@ -50,7 +50,7 @@ def case():
         for metric, v in values.items():
             rows.append(pl.DataFrame({
                 "run_id": "test", "experiment": "s1 tiny", "variant": VARIANTS[key], "variant_key": key,
-                "metric": metric, "step": np.arange(truth.time.size, dtype=np.int32), "time": truth.time,
+                "series": metric, "step": np.arange(truth.time.size, dtype=np.int32), "time": truth.time,
                 "value": v, "n_runs": np.full(truth.time.size, RUNS, dtype=np.int32)}))
     return dict(models=models, truth=truth, det=det, estimates=estimates, metrics=pl.concat(rows))
 
@@ -250,7 +250,7 @@ def case3d():
         for metric, v in values.items():
             rows.append(pl.DataFrame({
                 "run_id": "test", "experiment": "mie tiny", "variant": VARIANTS_3D[key], "variant_key": key,
-                "metric": metric, "step": np.arange(K_3D, dtype=np.int32), "time": t, "value": v,
+                "series": metric, "step": np.arange(K_3D, dtype=np.int32), "time": t, "value": v,
                 "n_runs": np.full(K_3D, RUNS_3D, dtype=np.int32)}))
     return dict(truth=truth, det=det, estimates=estimates, metrics=pl.concat(rows), position=p)
 

@@ -174,7 +174,7 @@ def test_metrics_and_config(entities):
 
 
 def test_bias_rmse_metric_in_display_units(chunks, case):
-    expected = case["metrics"].filter((pl.col("metric") == "bias_rmse_azimuth_offset_s1")
+    expected = case["metrics"].filter((pl.col("series") == "bias_rmse_azimuth_offset_s1")
                                       & (pl.col("variant_key") == "proposed") & (pl.col("step") == 20))
     got = rows(chunks, "/metrics/bias_rmse_azimuth_offset_s1/proposed", "Scalars:scalars")[20]
     assert got[0] == pytest.approx(expected["value"][0] * 1e3)

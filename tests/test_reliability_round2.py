@@ -56,6 +56,6 @@ def test_an_empty_variant_list_is_refused_up_front(tmp_path):
 
 def test_the_summary_counts_never_finite_runs(tmp_path):
     out, _ = run_in_process(tmp_path, "ok", "mc.runs=2", "scenario.steps=20")
-    names = set(out.summary["metric"].to_list())
+    names = set(out.summary["series"].to_list())
     assert "fault_runs_never_finite" in names
-    assert out.summary.filter(pl.col("metric") == "fault_runs_never_finite")["value"].sum() == 0
+    assert out.summary.filter(pl.col("series") == "fault_runs_never_finite")["value"].sum() == 0

@@ -31,7 +31,7 @@ def study(tmp_path_factory):
 
 
 def window(out, variant: str, metric: str, name: str) -> float:
-    rows = out.summary.filter((pl.col("variant_key") == variant) & (pl.col("metric") == metric)
+    rows = out.summary.filter((pl.col("variant_key") == variant) & (pl.col("series") == metric)
                               & (pl.col("window") == name))
     return float(rows["value"][0])
 

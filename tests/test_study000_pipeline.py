@@ -300,10 +300,10 @@ def test_pipeline_with_the_stub_writes_the_new_metrics(study_run):
                 "input_level_x", "input_level_y",
                 "input_level_z", "detections", "detections_axis_x", "detections_axis_y", "detections_axis_z",
                 "position_bound", "position_rmse_over_bound"}          # the stub exports no NIS
-    assert set(metrics["metric"]) == expected
+    assert set(metrics["series"]) == expected
 
     def series(metric, variant="b"):
-        rows = metrics.filter((pl.col("metric") == metric) & (pl.col("variant_key") == variant)).sort("step")
+        rows = metrics.filter((pl.col("series") == metric) & (pl.col("variant_key") == variant)).sort("step")
         return rows["value"].to_numpy()
 
     det = series("detections")
@@ -319,7 +319,7 @@ def test_pipeline_with_the_stub_writes_the_new_metrics(study_run):
     summary = pl.read_parquet(ctx.run_dir / "summary.parquet")
 
     def value(metric, window, variant="b"):
-        hit = summary.filter((pl.col("metric") == metric) & (pl.col("variant_key") == variant)
+        hit = summary.filter((pl.col("series") == metric) & (pl.col("variant_key") == variant)
                              & (pl.col("window") == window))["value"]
         assert hit.len() == 1, (metric, window, variant)
         return hit[0]
@@ -328,17 +328,17 @@ def test_pipeline_with_the_stub_writes_the_new_metrics(study_run):
     assert [value("detections", w) for w in ("t1-40", "t41-60", "t61-74", "t75-100")] == [0, 4, 4, 0]
     assert [value(f"detections_axis_{a}", "t61-74", "c") for a in "xyz"] == [4, 4, 4]
     assert value("detections", "all") == 8                    # counts are summed in every window
-    assert summary.filter((pl.col("window") == "t41-60") & pl.col("metric").is_in(["position_rmse"])).height == 0
+    assert summary.filter((pl.col("window") == "t41-60") & pl.col("series").is_in(["position_rmse"])).height == 0
     # RMS errors time-averaged over the windows
     rmse = series("position_rmse")
     assert value("position_rmse", "maneuver") == pytest.approx(rmse[41:61].mean())
     assert value("position_rmse", "before") == pytest.approx(rmse[2:41].mean())
-    units = dict(zip(summary["metric"], summary["unit"]))
+    units = dict(zip(summary["series"], summary["unit"]))
     assert units["detections"].startswith("count") and units["acceleration_rmse"] == "m/s^2"
     # compute time per variant and as % of A; the report node is not a config column
-    pct = summary.filter(pl.col("metric") == "compute_pct_of_reference")
+    pct = summary.filter(pl.col("series") == "compute_pct_of_reference")
     assert dict(zip(pct["variant_key"], pct["value"]))["a"] == pytest.approx(100.0)
-    assert summary.filter(pl.col("metric") == "compute_seconds").height == 3
+    assert summary.filter(pl.col("series") == "compute_seconds").height == 3
     assert "scenario.initial_position" in summary.columns and not any(c.startswith("report") for c in summary.columns)
     assert is_count("detections") and is_count("detections_axis_x") and not is_count("position_rmse")
 
@@ -402,7 +402,7 @@ def test_bad_study_config_is_rejected_before_any_stage(tmp_path, overrides, mess
 
 
 def test_binned_table_is_generic_means_and_missing_metrics():
-    metrics = pl.DataFrame({"variant_key": ["v"] * 6, "metric": ["m"] * 6, "step": list(range(6)),
+    metrics = pl.DataFrame({"variant_key": ["v"] * 6, "series": ["m"] * 6, "step": list(range(6)),
                             "value": [np.nan, 1.0, 2.0, 3.0, 4.0, 5.0]})
     table = BinnedTable(title="T", aggregate="mean", reference_label="ref", row_header="k", note="a note",
                         columns=[{"label": "V", "variant": "v", "metrics": ["m", "absent"], "parts": ["m", "a"]}],
@@ -455,7 +455,7 @@ def test_study_001_printed_table_is_unchanged(tmp_path):
     from tests.test_pipeline import run_in_process
     out, ctx = run_in_process(tmp_path, "s1", "mc.runs=2", "scenario.steps=30")
     assert out.table == format_summary(out.summary, "ao_vsimm_s1", 2)
-    assert set(out.metrics["metric"]) == {"acceleration_rmse_x", "acceleration_rmse_y", "position_rmse",
+    assert set(out.metrics["series"]) == {"acceleration_rmse_x", "acceleration_rmse_y", "position_rmse",
                                           "velocity_rmse", "nees", "nees_lower", "nees_upper", "models_evaluated",
                                           "nis", "nis_lower", "nis_upper", "position_bound",
                                           "position_rmse_over_bound"}

@@ -84,11 +84,11 @@ def test_the_run_writes_the_study_tables(study_run):
 def test_summary_and_report_carry_the_bias_metrics(study_run):
     _, out, ctx = study_run
     summary = out.summary
-    row = summary.filter((pl.col("variant_key") == "proposed") & (pl.col("metric") == "bias_rmse_range_offset_s1")
+    row = summary.filter((pl.col("variant_key") == "proposed") & (pl.col("series") == "bias_rmse_range_offset_s1")
                          & (pl.col("window") == "t10"))
     assert row.height == 1 and row["unit"][0] == "m" and 0 < row["value"][0] < 20
-    assert summary.filter((pl.col("variant_key") == "local") & pl.col("metric").str.starts_with("bias_")).height == 0
-    assert set(summary.filter(pl.col("metric") == "position_rmse_s1_t32_compensated")["variant_key"]) == \
+    assert summary.filter((pl.col("variant_key") == "local") & pl.col("series").str.starts_with("bias_")).height == 0
+    assert set(summary.filter(pl.col("series") == "position_rmse_s1_t32_compensated")["variant_key"]) == \
         {"local", "proposed", "exx"}
     report = (ctx.run_dir / "report.txt").read_text()
     assert "Figs 3-6 (seed 002)" in report and "Figs 8-11 (seed 002)" in report and "EXX / proposed" in report

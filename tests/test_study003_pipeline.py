@@ -68,13 +68,13 @@ def test_summary_has_the_table1_rows_and_the_switch_peaks(study_run):
     _, out, ctx = study_run
     s = out.summary
     for metric in ("rmse_x", "rmse_y", "median_run_rmse_x", "paired_ratio_y"):
-        assert s.filter((pl.col("metric") == metric) & (pl.col("variant_key") == "ekf")).height == 1, metric
-    ratio = s.filter((pl.col("metric") == "paired_ratio_x") & (pl.col("variant_key") == "only_mgekf"))["value"][0]
+        assert s.filter((pl.col("series") == metric) & (pl.col("variant_key") == "ekf")).height == 1, metric
+    ratio = s.filter((pl.col("series") == "paired_ratio_x") & (pl.col("variant_key") == "only_mgekf"))["value"][0]
     assert ratio == pytest.approx(1.0)
-    windows = set(s.filter(pl.col("metric") == "peak_position_rmse")["window"])
+    windows = set(s.filter(pl.col("series") == "peak_position_rmse")["window"])
     assert windows == {"after 300 s", "after 700 s"}
     metrics = pl.read_parquet(ctx.run_dir / "metrics.parquet")
-    assert {"position_rmse_x", "position_rmse_y", "position_rmse", "nees"} <= set(metrics["metric"])
+    assert {"position_rmse_x", "position_rmse_y", "position_rmse", "nees"} <= set(metrics["series"])
     report = (ctx.run_dir / "report.txt").read_text()
     assert "Table 1 (seed 003, case 2)" in report and "KF+MGEKF 1631, only MGEKF 686" in report
 
@@ -85,8 +85,8 @@ def test_cached_estimates_give_the_same_summary(study_run, caplog):
     again, _ = run_study(tmp, "again", *SHORT)
     assert caplog.text.count("[track] reused") == 4
     key = ["variant_key", "metric", "window"]
-    a = first.summary.filter(pl.col("metric") != "compute_seconds").sort(key).select(*key, "value")
-    b = again.summary.filter(pl.col("metric") != "compute_seconds").sort(key).select(*key, "value")
+    a = first.summary.filter(pl.col("series") != "compute_seconds").sort(key).select(*key, "value")
+    b = again.summary.filter(pl.col("series") != "compute_seconds").sort(key).select(*key, "value")
     assert a["value"].to_numpy() == pytest.approx(b["value"].to_numpy(), rel=1e-5, nan_ok=True)  # P stored float32
 
 

@@ -48,8 +48,8 @@ def test_a_short_run_writes_tables_summary_and_a_recording_with_the_cloud(tmp_pa
     s = out.summary
     for metric, window in (("track_loss_rate", "final error > 2000 m"), ("final_position_rmse", "final"),
                            ("peak_median_error", "t300-600")):
-        assert s.filter((pl.col("metric") == metric) & (pl.col("window") == window)).height == 3, metric
-    assert s.filter((pl.col("metric") == "mode_probability_cw") & (pl.col("variant_key") == "ekf")).height == 0
+        assert s.filter((pl.col("series") == metric) & (pl.col("window") == window)).height == 3, metric
+    assert s.filter((pl.col("series") == "mode_probability_cw") & (pl.col("variant_key") == "ekf")).height == 0
     assert (ctx.run_dir / "recording.rrd").stat().st_size > 100_000
     assert "Case 2B (mode switch)" in (ctx.run_dir / "report.txt").read_text()
 

@@ -76,10 +76,10 @@ def test_a_layout_without_some_components_leaves_them_nan():
 def test_one_filter_runs_unchanged_in_three_studies(tmp_path, experiment, kf, extra, reference, tolerance):
     out, _ = run_in_process(tmp_path, "run", f"experiment={experiment}", "mc.runs=10", f"+filter@filters.kf={kf}",
                             *extra)
-    rmse = out.summary.filter((pl.col("metric") == "position_rmse") & (pl.col("window") == "all"))
+    rmse = out.summary.filter((pl.col("series") == "position_rmse") & (pl.col("window") == "all"))
     values = dict(zip(rmse["variant_key"], rmse["value"]))
     assert np.isfinite(values["kf"]) and values["kf"] < tolerance * values[reference], values
-    faults = out.summary.filter((pl.col("metric") == "diverged_runs") & (pl.col("variant_key") == "kf"))
+    faults = out.summary.filter((pl.col("series") == "diverged_runs") & (pl.col("variant_key") == "kf"))
     assert faults["value"][0] == 0
 
 

@@ -54,7 +54,7 @@ def _renamed(df: pl.DataFrame, renames: dict[str, str]) -> pl.DataFrame:
         return df
     df = df.rename({c: renames[c] for c in df.columns if c in renames})
     if "metric" in df.columns:
-        df = df.with_columns(pl.col("metric").replace(renames))
+        df = df.with_columns(pl.col("series").replace(renames))
     return df
 
 
@@ -75,6 +75,8 @@ def _values_equal(a: pl.Series, b: pl.Series) -> bool:
 def compare(name: str, base: Path, head: Path, renames: dict[str, str]) -> str | None:
     """None when equal, else what differs."""
     a, b = _renamed(pl.read_parquet(base), renames), pl.read_parquet(head)
+    if "series" in b.columns and "series" not in a.columns and "metric" in a.columns:
+        a = a.rename({"metric": "series"})      # the series' name moved to 'series'; 'metric' is now its quantity
     a, b = a.drop([c for c in a.columns if c in PROVENANCE]), b.drop([c for c in b.columns if c in PROVENANCE])
     missing = sorted(set(a.columns) - set(b.columns))
     if missing:

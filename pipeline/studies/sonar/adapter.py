@@ -152,7 +152,7 @@ class SonarStudy(Study):
         rows: list[dict] = []
 
         def add(key, metric, window, value):
-            rows.append({"variant": display[key], "variant_key": key, "metric": metric, "window": window,
+            rows.append({"variant": display[key], "variant_key": key, "series": metric, "window": window,
                          "value": None if value is None else float(value), "unit": unit_of(metric), "n_runs": runs})
 
         per_run = {}

@@ -211,7 +211,7 @@ class SonobuoyStudy(Study):
         rows = []
 
         def add(key, metric, window, value):
-            rows.append({"variant": display[key], "variant_key": key, "metric": metric, "window": window,
+            rows.append({"variant": display[key], "variant_key": key, "series": metric, "window": window,
                          "value": None if value is None else float(value), "unit": unit_of(metric), "n_runs": runs})
 
         time = truth.time
