@@ -448,7 +448,7 @@ def test_study_001_printed_table_is_unchanged(tmp_path):
         rows.append((display, key, "compute_seconds", None, 0.1234 * (i + 1)))
         rows.append((display, key, "group_reached_fraction", "M3 by step 80", 0.25 * i))
         rows.append((display, key, "compute_pct_of_reference", None, 100.0 * (i + 1)))
-    df = pl.DataFrame(rows, schema=["variant", "variant_key", "metric", "window", "value"], orient="row")
+    df = pl.DataFrame(rows, schema=["variant", "variant_key", "series", "window", "value"], orient="row")
     assert format_summary(df, "ao_vsimm_s2", 7) == GOLDEN_001
 
     # a real study-001 run: the same metrics and windows as before, and nothing after the summary

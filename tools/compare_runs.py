@@ -85,6 +85,7 @@ def compare(name: str, base: Path, head: Path, renames: dict[str, str]) -> str |
     if a.height != b.height:
         return f"{a.height} rows in base, {b.height} here"
     keys = KEYS.get(name, [c for c in ("run", "step", "target") if c in a.columns])
+    keys = [("series" if k == "metric" and "series" in a.columns else k) for k in keys]
     a, b = a.sort(keys), b.sort(keys)
     differing = [c for c in a.columns if not _values_equal(a[c], b[c])]
     return f"values differ in {differing}" if differing else None
