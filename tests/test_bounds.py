@@ -61,7 +61,7 @@ def test_study_001_known_input_bound_is_the_covariance_of_an_imm_of_identical_mo
     from filters.models import AccelerationModelSet
     from pipeline.data import Truth
     from pipeline.studies.ao_vsimm.sensor import PositionSensor
-    from pipeline.bounds import KnownInputBound
+    from pipeline.studies.ao_vsimm.bound import KnownInputBound
 
     q, noise, K = 3.0, 15.0, 40
     models = AccelerationModelSet.from_config({"a": [0, 0], "b": [0, 0]}, [[0.9, 0.1], [0.1, 0.9]],
@@ -81,7 +81,7 @@ def test_study_000_radar_information_is_the_polar_jacobian_information():
     from filters.coordinates import line_of_sight_angles
     from pipeline.data import Truth
     from pipeline.studies.mie_los.sensor import Radar3D
-    from pipeline.bounds import RadarSingerBound
+    from pipeline.studies.mie_los.bound import RadarSingerBound
 
     radar = Radar3D(position=[100.0, -50.0, 10.0], range_std=10.0, azimuth_std=0.007, elevation_std=0.006)
     p = np.array([8000.0, 4000.0, 2000.0])
