@@ -73,6 +73,11 @@ def validate(cfg: DictConfig) -> None:
     if missing:
         raise ConfigError(f"missing mandatory config value(s) {missing}: select an experiment with "
                           f"experiment=NAME (see conf/experiment/) or set them on the command line.")
+    for key in ("record.enabled", "cache.enabled"):
+        value = OmegaConf.select(cfg, key)
+        if not isinstance(value, bool):
+            raise ConfigError(f"{key}: {value!r} is not allowed; it must be true or false (a quoted 'false' is a "
+                              f"string, and any non-empty string or non-zero number used to count as true).")
     runs = cfg.mc.runs
     if not _is_int(runs) or runs < 1:
         raise ConfigError(f"mc.runs: {runs!r} is not allowed; the number of Monte Carlo runs must be an integer >= 1.")
@@ -240,8 +245,29 @@ def build(node: DictConfig, key: str) -> Any:
             cause = cause.__cause__
         message = str(cause).strip().splitlines()[0] if str(cause).strip() else type(cause).__name__
         target = node.get("_target_")
-        raise ConfigError(f"{key}: {message} (while building {target}; fix the value under '{key}' "
-                          f"in the experiment config or on the command line).") from None
+        # a value this node takes from elsewhere (${models.process_noise_std}) is fixed where it is set
+        sources = [(leaf, source) for leaf, source in interpolated_leaves(node, key)
+                   if leaf.rsplit(".", 1)[-1] in message]
+        where = " or ".join(source for _, source in sources) if sources else f"the value under '{key}'"
+        via = "".join(f" {leaf} is ${{{source}}}: the value was set as {source}." for leaf, source in sources)
+        raise ConfigError(f"{key}: {message} (while building {target}).{via} Fix {where} in the experiment "
+                          f"config or on the command line.") from None
+
+
+def interpolated_leaves(node: DictConfig, key: str) -> list[tuple[str, str]]:
+    """(dotted leaf, the key it interpolates) for every leaf of ``node`` that is a plain ``${key}``."""
+    found: list[tuple[str, str]] = []
+
+    def walk(value: Any, where: str) -> None:
+        if isinstance(value, dict):
+            for k, v in value.items():
+                walk(v, f"{where}.{k}")
+        elif isinstance(value, str):
+            match = re.fullmatch(r"\$\{([A-Za-z0-9_.]+)\}", value.strip())
+            if match:
+                found.append((where, match.group(1)))
+    walk(OmegaConf.to_container(node, resolve=False), key)
+    return found
 
 
 def check_types(node: Any, key: str) -> None:

@@ -59,3 +59,19 @@ def test_the_summary_counts_never_finite_runs(tmp_path):
     names = set(out.summary["series"].to_list())
     assert "fault_runs_never_finite" in names
     assert out.summary.filter(pl.col("series") == "fault_runs_never_finite")["value"].sum() == 0
+
+
+@pytest.mark.parametrize("override, shown", [("record.enabled=2", "2"), ("cache.enabled=maybe", "'maybe'"),
+                                             ("cache.enabled='false'", "'false'")])
+def test_booleans_are_booleans(tmp_path, override, shown):
+    """Item 14: record.enabled=2 and cache.enabled=maybe were taken as true; the quoted 'false' still used the cache."""
+    with pytest.raises(ConfigError, match=f"{override.split('=')[0]}: {shown} is not allowed; it must be true or false"):
+        run_in_process(tmp_path, "bad", "mc.runs=2", override)
+    assert not (tmp_path / "cache").exists()
+
+
+def test_a_refused_value_names_the_key_the_user_set(tmp_path):
+    """Item 18: models.process_noise_std=-10 was reported as bound.process_noise_std (interpolated from it)."""
+    with pytest.raises(ConfigError) as info:
+        run_in_process(tmp_path, "bad", "mc.runs=2", "models.process_noise_std=-10")
+    assert "the value was set as models.process_noise_std. Fix models.process_noise_std" in str(info.value)
