@@ -100,8 +100,30 @@ def _config_columns(resolved: dict) -> dict[str, Any]:
     return {f"{k}": v for k, v in flatten(resolved, skip=("filters.*.models", "description", "report", "smoke")).items()}
 
 
-def _windows(cfg: DictConfig, key: str, K: int) -> list[Window]:
-    return [Window(name, int(b[0]), min(int(b[1]), K - 1)) for name, b in (cfg.metrics.get(key) or {}).items()]
+def _windows(cfg: DictConfig, key: str, K: int, warn: bool = False) -> list[Window]:
+    """The summary windows over steps 0..K-1. ``all`` means all: it ends at the last step whatever its
+    configured end. A window that starts after the last step is left out (it was a row of NaN), one
+    that ends after it is clipped; with ``warn`` each is logged by name."""
+    windows = []
+    for name, bounds in (cfg.metrics.get(key) or {}).items():
+        first, last = int(bounds[0]), int(bounds[1])
+        if last < first:
+            raise ConfigError(f"metrics.{key}.{name}: [{first}, {last}] ends before it starts; give [first, last] "
+                              f"steps with first <= last.")
+        if first > K - 1:                 # a short run of a long study: say so, do not write NaN rows
+            if warn:
+                log.warning("metrics.%s.%s: [%d, %d] starts after the scenario's last step %d; left out of the "
+                            "summary", key, name, first, last, K - 1)
+            continue
+        if name == "all":
+            last = K - 1
+        elif last > K - 1:
+            if warn:
+                log.warning("metrics.%s.%s: [%d, %d] ends after the scenario's last step %d; summarised over "
+                            "steps %d..%d", key, name, first, last, K - 1, first, K - 1)
+            last = K - 1
+        windows.append(Window(name, first, last))
+    return windows
 
 
 def build_report_tables(cfg: DictConfig) -> dict[str, Any]:
@@ -274,6 +296,9 @@ def run_experiment(cfg: DictConfig, ctx: RunContext) -> RunOutcome:
             lambda value, s=stage, i=inputs: s.to_frame(value, i), stage.publish_as, stage.describe(inputs),
             stage.from_frame)
         keys[stage.output] = key
+        if stage.output == "truth":       # the windows must fit the scenario before any filtering
+            for which in ("windows", "count_windows"):
+                _windows(cfg, which, outputs["truth"].time.size, warn=True)
     truth = outputs["truth"]
     detections = outputs["detections"]
     K = truth.time.size

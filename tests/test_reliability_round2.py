@@ -75,3 +75,16 @@ def test_a_refused_value_names_the_key_the_user_set(tmp_path):
     with pytest.raises(ConfigError) as info:
         run_in_process(tmp_path, "bad", "mc.runs=2", "models.process_noise_std=-10")
     assert "the value was set as models.process_noise_std. Fix models.process_noise_std" in str(info.value)
+
+
+def test_summary_windows_fit_the_scenario(tmp_path, caplog):
+    """Item 15: windows past the scenario's end gave silent NaN rows, and 'all' stopped at its configured end."""
+    short, _ = run_in_process(tmp_path, "short", "experiment=ao_vsimm_s2", "mc.runs=2", "scenario.steps=40")
+    assert "metrics.windows.after_switch: [57, 200] starts after the scenario's last step 40" in caplog.text
+    assert set(short.summary["window"].drop_nulls().unique().to_list()) <= {"all", "M3 by step 80"}
+    long, _ = run_in_process(tmp_path, "long", "experiment=ao_vsimm_s1", "mc.runs=2", "scenario.steps=260")
+    per_step = long.metrics.filter((pl.col("series") == "position_rmse") & (pl.col("variant_key") == "fsimm")
+                                   ).sort("step")["value"].to_numpy()
+    summary = long.summary.filter((pl.col("series") == "position_rmse") & (pl.col("variant_key") == "fsimm")
+                                  & (pl.col("window") == "all"))["value"][0]
+    assert summary == pytest.approx(np.nanmean(per_step[2:261]))       # 'all' is steps 2..260, not 2..200
