@@ -511,9 +511,24 @@ def _is_file_error(e: Exception) -> bool:
         "parquet" in str(e).lower() or isinstance(e, OSError))
 
 
+# polars SQL's table functions read any file the user can (read_csv('/etc/passwd')): the query
+# command and the report expose the project's tables only
+FILE_FUNCTIONS = re.compile(r"\bread_(csv|parquet|json|ndjson|ipc|delta|excel|database)\s*\(", re.IGNORECASE)
+
+
+def check_tables_only(sql: str) -> None:
+    """Refuse SQL that reads files through a table function (read_csv, read_parquet, ...)."""
+    found = FILE_FUNCTIONS.search(sql or "")
+    if found:
+        raise QueryError(f"{found.group(0).rstrip('(').strip()}(...): queries read the project's tables only "
+                         f"({', '.join(TABLE_NAMES)} here; summary, metrics and wide in a report), not files; "
+                         f"select from those tables instead.")
+
+
 def _run_sql(sql: str, cat: _Catalog, warn: Warn) -> pl.DataFrame:
     if not sql or not sql.strip():
         raise QueryError(f"empty SQL query. Tables: {', '.join(TABLE_NAMES)}. {QUOTING_HELP}")
+    check_tables_only(sql)
     # read the footers only of the tables the query names (all of them if it names none)
     names = [n for n in TABLE_NAMES if re.search(rf"\b{n}\b", sql, re.IGNORECASE)] or TABLE_NAMES
     tables = cat.lazy(names)

@@ -221,6 +221,8 @@ class RunTables:
     wide: pl.DataFrame          # the summary pivoted: one row per window, one column per "<variant_key>:<series>"
 
     def query(self, sql: str) -> pl.DataFrame:
+        from pipeline.query import check_tables_only
+        check_tables_only(sql)                     # the run's tables only, no file-reading functions
         context = pl.SQLContext(summary=self.summary, metrics=self.metrics, wide=self.wide, eager=True)
         return context.execute(sql)
 

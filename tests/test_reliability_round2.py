@@ -88,3 +88,19 @@ def test_summary_windows_fit_the_scenario(tmp_path, caplog):
     summary = long.summary.filter((pl.col("series") == "position_rmse") & (pl.col("variant_key") == "fsimm")
                                   & (pl.col("window") == "all"))["value"][0]
     assert summary == pytest.approx(np.nanmean(per_step[2:261]))       # 'all' is steps 2..260, not 2..200
+
+
+def test_sql_reads_the_project_tables_only(tmp_path):
+    """Item 6: mtt-query sql "SELECT * FROM read_csv('/etc/passwd')" returned the file."""
+    from pipeline.query import QueryError, query
+    from pipeline.report import TargetSpec, evaluate_target, load_run
+    secret = tmp_path / "secret.csv"
+    secret.write_text("user,password\nroot,hunter2\n")
+    _, ctx = run_in_process(tmp_path, "ao_vsimm_s1/run", "mc.runs=2", "scenario.steps=20")
+    for sql in (f"SELECT * FROM read_csv('{secret}')", f"select * from READ_PARQUET ('{ctx.run_dir}/summary.parquet')"):
+        with pytest.raises(QueryError, match="queries read the project's tables only"):
+            query(sql, root=tmp_path)
+    assert query("SELECT COUNT(*) AS n FROM summary", root=tmp_path)["n"][0] > 0
+    target = TargetSpec("leak", "t", "p", f"SELECT user AS measured, TRUE AS pass FROM read_csv('{secret}')")
+    result = evaluate_target(load_run(ctx.run_dir), target)
+    assert result.verdict == "ERROR" and "hunter2" not in result.measured
