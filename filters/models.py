@@ -30,19 +30,34 @@ def position_measurement_matrix(axes: int = 2) -> np.ndarray:
 
 def two_point_initialisation(z0: np.ndarray, z1: np.ndarray, dt: float, noise_covariance: np.ndarray
                              ) -> tuple[np.ndarray, np.ndarray]:
-    """Two-point differencing: position z1, velocity (z1 - z0)/dt (Bar-Shalom, Li & Kirubarajan 5.5.3).
+    """Two-point differencing with one noise covariance R for both scans (two_point_start): per axis
+    pair (i, j) [[R_ij, R_ij/dt], [R_ij/dt, 2 R_ij/dt^2]], which keeps the cross-axis terms of a
+    correlated R; the state is (p, v) per axis."""
+    R = np.asarray(noise_covariance, dtype=float)
+    return two_point_start(z0, z1, R, R, dt)
 
-    z0, z1 are (..., m) position measurements; the state is (p, v) per axis. The covariance per
-    axis pair (i, j) is [[R_ij, R_ij/dt], [R_ij/dt, 2 R_ij/dt^2]], which keeps the cross-axis terms
-    of a correlated R.
-    """
-    axes = z0.shape[-1]
-    x = np.empty(z0.shape[:-1] + (2 * axes,))
-    x[..., 0::2] = z1
-    x[..., 1::2] = (z1 - z0) / dt
-    block = np.array([[1.0, 1.0 / dt], [1.0 / dt, 2.0 / dt**2]])
-    P = np.kron(noise_covariance, block)
-    return x, np.broadcast_to(P, x.shape[:-1] + P.shape).copy()
+
+def two_point_start(z0: np.ndarray, z1: np.ndarray, R0: np.ndarray, R1: np.ndarray, dt: float,
+                    kinematics: int = 2, acceleration_variance: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """Two-point differencing with each scan's own noise covariance (converted measurements):
+    p = z1, v = (z1 - z0)/dt, cov(p) = R1, cov(p, v) = R1/dt, cov(v) = (R1 + R0)/dt^2 (Bar-Shalom,
+    Li & Kirubarajan 5.5.3); with ``kinematics`` 3 an acceleration 0 of variance
+    ``acceleration_variance`` per axis. z (..., d), R (..., d, d); state axis-major, (p, v[, a]) per
+    axis: x (..., d * kinematics), P (..., n, n)."""
+    d = z1.shape[-1]
+    n = d * kinematics
+    pos = np.arange(d) * kinematics
+    vel = pos + 1
+    x = np.zeros(z1.shape[:-1] + (n,))
+    x[..., pos], x[..., vel] = z1, (z1 - z0) / dt
+    P = np.zeros(np.broadcast_shapes(z1.shape[:-1], R0.shape[:-2], R1.shape[:-2]) + (n, n))
+    P[..., pos[:, None], pos[None, :]] = R1
+    P[..., pos[:, None], vel[None, :]] = R1 / dt
+    P[..., vel[:, None], pos[None, :]] = R1 / dt
+    P[..., vel[:, None], vel[None, :]] = (R1 + R0) / dt**2
+    if kinematics == 3:
+        P[..., pos + 2, pos + 2] = acceleration_variance
+    return x, P
 
 
 def _parse_probability(value: object, where: str) -> float:

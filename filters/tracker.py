@@ -40,7 +40,7 @@ from filters.base import MeasurementSeries, TrackEstimate
 from filters.coordinates import converted_covariance, polar_to_cartesian
 from filters.mgekf import STATE_NAMES as SONAR_STATE_NAMES
 from filters.mgekf import SonarReports, cv_relative_model, nonlinear_update, relative_motion_model, sonar_start
-from filters.models import singer_process_noise, singer_transition
+from filters.models import singer_process_noise, singer_transition, two_point_start
 
 AXES = ("x", "y", "z")
 
@@ -134,21 +134,11 @@ class KalmanTracker:
         F1, Q1 = self.axis_model(dt)
         F, Q = np.kron(np.eye(d), F1), np.kron(np.eye(d), Q1)
         pos = np.arange(d) * nk                                                   # p of each axis
-        vel = pos + 1
         states = np.full((R, K, n), np.nan)
         covariances = np.full((R, K, n, n), np.nan)
         nis = np.full((R, K), np.nan)
-        # two-point start at scan 1 (Bar-Shalom et al. 5.5.3), with the two scans' own covariances
-        x = np.zeros((R, n))
-        x[:, pos], x[:, vel] = z[:, 1], (z[:, 1] - z[:, 0]) / dt
-        P = np.zeros((R, n, n))
-        R0, R1 = noise[:, 0], noise[:, 1]
-        P[:, pos[:, None], pos[None, :]] = R1
-        P[:, pos[:, None], vel[None, :]] = R1 / dt
-        P[:, vel[:, None], pos[None, :]] = R1 / dt
-        P[:, vel[:, None], vel[None, :]] = (R0 + R1) / dt**2
-        if nk == 3:
-            P[:, pos + 2, pos + 2] = self.sigma_m**2
+        # two-point start at scan 1, with the two scans' own covariances
+        x, P = two_point_start(z[:, 0], z[:, 1], noise[:, 0], noise[:, 1], dt, nk, self.sigma_m**2)
         states[:, 1], covariances[:, 1] = x, P
         for k in range(2, K):
             x = x @ F.T                                                           # predict
@@ -156,12 +146,14 @@ class KalmanTracker:
             PHt = P[:, :, pos]                                                    # (R, n, d)
             S = PHt[:, pos, :] + noise[:, k]
             nu = np.where(detected[:, k, None], z[:, k] - x[:, pos], 0.0)
-            gain = np.swapaxes(np.linalg.solve(S, np.swapaxes(PHt, 1, 2)), 1, 2)
+            # one solve for the gain K = P H' S^-1 and for S^-1 nu (the NIS)
+            solved = np.linalg.solve(S, np.concatenate([np.swapaxes(PHt, 1, 2), nu[..., None]], axis=-1))
+            gain, s_nu = np.swapaxes(solved[..., :n], 1, 2), solved[..., n]
             seen = detected[:, k]
             x = x + np.einsum("rij,rj->ri", gain, nu)
             updated = P - gain @ np.swapaxes(PHt, 1, 2)
             P = np.where(seen[:, None, None], 0.5 * (updated + np.swapaxes(updated, 1, 2)), P)
-            nis[:, k] = np.where(seen, np.einsum("ri,ri->r", nu, np.linalg.solve(S, nu[..., None])[..., 0]), np.nan)
+            nis[:, k] = np.where(seen, np.einsum("ri,ri->r", nu, s_nu), np.nan)
             states[:, k], covariances[:, k] = x, P
         return states, covariances, {"nis": nis, "nis_dof": np.where(np.isfinite(nis), float(d), 0.0)}
 

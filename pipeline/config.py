@@ -65,8 +65,7 @@ def selected_variants(cfg: DictConfig) -> list[str]:
 def validate(cfg: DictConfig) -> None:
     """Reject bad values before any stage runs."""
     if cfg.get("filters") and cfg.get("sensors") is not None:
-        check_measurement_kinds(cfg, [str(v) for v in (cfg.get("variants") or cfg.filters.keys())
-                                      if v in cfg.filters])
+        check_measurement_kinds(cfg, selected_variants(cfg))
     check_interpolations(cfg)
     check_finite(cfg)
     missing = sorted(OmegaConf.missing_keys(cfg))

@@ -190,11 +190,9 @@ class _Stages:
 
     def run(self, stage: str, key: str, table: str, compute: Callable[[], Any],
             to_frame: Callable[[Any], tuple[pl.DataFrame, dict]], publish_as: Path, describe: str,
-            from_frame: Callable[[pl.DataFrame, dict[str, str]], Any] | None = None
-            ) -> tuple[Any, bool, pl.DataFrame]:
+            from_frame: Callable[[pl.DataFrame, dict[str, str]], Any]) -> tuple[Any, bool, pl.DataFrame]:
         """(the stage's value as the table holds it, whether it came from the cache, the table)."""
         started = time.perf_counter()
-        from_frame = from_frame or schemas.FROM_FRAME[table]
         hit = self.cache.load(stage, key, table)
         if hit is not None:
             df = hit[0]
@@ -288,7 +286,8 @@ def run_experiment(cfg: DictConfig, ctx: RunContext) -> RunOutcome:
     keys: dict[str, str] = {}
     tables: dict[str, pl.DataFrame] = {}
     cached: dict[str, bool] = {}
-    for stage in declare_stages(cfg, resolved, prepared, build_fault_checks(cfg)):
+    declared, track_input = declare_stages(cfg, resolved, prepared, build_fault_checks(cfg))
+    for stage in declared:
         inputs = {name: outputs[name] for name in stage.inputs}
         key = stage_key(stage.cache, stage.config, tuple(keys[name] for name in stage.inputs), stage.producers)
         outputs[stage.output], cached[stage.output], tables[stage.output] = stages.run(
@@ -339,7 +338,7 @@ def run_experiment(cfg: DictConfig, ctx: RunContext) -> RunOutcome:
         study.record(ctx.run_dir / "recording.rrd", RecordingInputs(
             experiment=experiment, truth=truth, detections=detections, estimates=estimates, display_names=display,
             metrics=metrics, record_runs=record_runs, sensor=sensor, estimators=estimators,
-            track_input=study.track_input(truth, detections, sensor, seed),     # the filters' view, for re-runs
+            track_input=track_input(truth, detections),     # the filters' view (made once), for re-runs
             seed=seed, config_text=OmegaConf.to_yaml(cfg, resolve=True), description=str(cfg.get("description", ""))))
         log.info("[record] recording.rrd (runs %s), %.2f s", record_runs, time.perf_counter() - started)
 

@@ -171,6 +171,3 @@ def _extent(df: pl.DataFrame, object_column: str) -> tuple[int, int, int]:
     if df.height != R * K * T:
         raise TableError(f"{df.height} rows do not fill the run x step x {object_column} grid {R}x{K}x{T}")
     return R, K, T
-
-
-FROM_FRAME = {"truth": truth_from_frame, "detections": detections_from_frame, "estimates": estimate_from_frame}

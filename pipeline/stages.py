@@ -41,22 +41,22 @@ class Stage:
         return Path(f"{self.output}.parquet")
 
 
-def declare(cfg: Any, resolved: Mapping[str, Any], prepared: Any, fault_checks: Any) -> list[Stage]:
-    """The experiment's stages, in order (``prepared``: pipeline.runner.Prepared; ``fault_checks``:
-    pipeline.faults.FaultChecks of the config)."""
+def declare(cfg: Any, resolved: Mapping[str, Any], prepared: Any, fault_checks: Any
+            ) -> tuple[list[Stage], Callable[[Any, Any], Any]]:
+    """The experiment's stages, in order, and the filters' view ``track_input(truth, detections)``
+    (Study.track_input, made once per detections and shared by every variant and the recording);
+    ``prepared``: pipeline.runner.Prepared; ``fault_checks``: pipeline.faults.FaultChecks."""
     runs, seed = int(cfg.mc.runs), int(cfg.mc.seed)
     study, scenario, sensor = prepared.study, prepared.scenario, prepared.sensor
     chunk_runs = cfg.mc.get("chunk_runs")
     # the adapter's node is part of what the filters see (the default adapter has none)
     study_node = {"study": resolved["study"]} if cfg.get("study") is not None else {}
-    track_inputs: dict[int, Any] = {}
+    made: list[tuple[Any, Any]] = []             # (detections, the filters' view of them)
 
-    def track_input(truth, detections):          # one filters' view for all variants
-        key = id(detections)
-        if key not in track_inputs:
-            track_inputs.clear()
-            track_inputs[key] = study.track_input(truth, detections, sensor, seed)
-        return track_inputs[key]
+    def track_input(truth, detections):          # one filters' view for all variants and the recording
+        if not made or made[0][0] is not detections:
+            made[:] = [(detections, study.track_input(truth, detections, sensor, seed))]
+        return made[0][1]
 
     stages = [
         Stage("scenario", "truth", "truth", (), {"scenario": resolved["scenario"], "runs": runs, "seed": seed},
@@ -79,4 +79,4 @@ def declare(cfg: Any, resolved: Mapping[str, Any], prepared: Any, fault_checks: 
             lambda estimate, inputs: with_fault_flags(study, estimate, inputs["truth"], fault_checks),
             study.estimate_from_frame,
             lambda i, n=name: f"{n}: {runs} runs x {i['truth'].time.size} scans"))
-    return stages
+    return stages, track_input

@@ -10,7 +10,7 @@ import numpy as np
 
 from filters.bounds import posterior_crlb
 from filters.coordinates import converted_covariance, line_of_sight_angles
-from filters.models import singer_process_noise, singer_transition
+from filters.models import singer_process_noise, singer_transition, two_point_start
 from pipeline.bounds import positive_parameter, scan_interval
 from pipeline.data import Truth
 
@@ -47,16 +47,11 @@ class RadarSingerBound:
         F = np.kron(np.eye(3), singer_transition(dt, self.tau))                     # (x, vx, ax, y, ...)
         Q = np.kron(np.eye(3), singer_process_noise(dt, self.tau, self.sigma_m))
         position_info = self.information(truth, sensor)
-        pos, vel, acc = [0, 3, 6], [1, 4, 7], [2, 5, 8]
+        pos = [0, 3, 6]                                                             # (x, vx, ax, y, ...)
         information = np.zeros((K, 9, 9))
         information[:, np.ix_(pos, pos)[0], np.ix_(pos, pos)[1]] = position_info
         R0, R1 = np.linalg.inv(position_info[0]), np.linalg.inv(position_info[1])
-        initial = np.zeros((9, 9))                                                  # filter A's start
-        initial[np.ix_(pos, pos)] = R1
-        initial[np.ix_(pos, vel)] = R1 / dt
-        initial[np.ix_(vel, pos)] = R1 / dt
-        initial[np.ix_(vel, vel)] = (R1 + R0) / dt**2
-        initial[acc, acc] = self.sigma_m**2
+        _, initial = two_point_start(np.zeros(3), np.zeros(3), R0, R1, dt, 3, self.sigma_m**2)   # filter A's start
         bounds = posterior_crlb(F, Q, initial, information[1:])                     # scans 1..K-1
         out = np.full(K, np.nan)
         out[1:] = np.sqrt(np.trace(bounds[:, np.ix_(pos, pos)[0], np.ix_(pos, pos)[1]], axis1=1, axis2=2))
