@@ -255,18 +255,10 @@ def build(node: DictConfig, key: str) -> Any:
 
 def interpolated_leaves(node: DictConfig, key: str) -> list[tuple[str, str]]:
     """(dotted leaf, the key it interpolates) for every leaf of ``node`` that is a plain ``${key}``."""
-    found: list[tuple[str, str]] = []
-
-    def walk(value: Any, where: str) -> None:
-        if isinstance(value, dict):
-            for k, v in value.items():
-                walk(v, f"{where}.{k}")
-        elif isinstance(value, str):
-            match = re.fullmatch(r"\$\{([A-Za-z0-9_.]+)\}", value.strip())
-            if match:
-                found.append((where, match.group(1)))
-    walk(OmegaConf.to_container(node, resolve=False), key)
-    return found
+    leaves = flatten(OmegaConf.to_container(node, resolve=False))
+    found = [(f"{key}.{leaf}", re.fullmatch(r"\$\{([A-Za-z0-9_.]+)\}", value.strip()))
+             for leaf, value in leaves.items() if isinstance(value, str)]
+    return [(leaf, match.group(1)) for leaf, match in found if match]
 
 
 def check_types(node: Any, key: str) -> None:
