@@ -24,7 +24,7 @@ import polars as pl
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, open_dict, read_write
 
-from pipeline.store import atomic_write_parquet
+from pipeline.store import atomic_write_parquet, read_table
 
 log = logging.getLogger("pipeline.aggregate")
 
@@ -40,8 +40,8 @@ def aggregate(sweep_dir: Path) -> tuple[pl.DataFrame, list[dict]]:
         summary = status_path.parent / "summary.parquet"
         if summary.exists():
             try:
-                frames.append(pl.read_parquet(summary))
-            except Exception as exc:
+                frames.append(read_table(summary)[0])
+            except Exception as exc:     # damaged (checksum) or unreadable: this job is left out, named
                 log.warning("skipped %s: %s", summary, exc)
     df = pl.concat(frames, how="diagonal_relaxed") if frames else pl.DataFrame()
     if frames:

@@ -77,6 +77,12 @@ def validate(cfg: DictConfig) -> None:
         if not isinstance(value, bool):
             raise ConfigError(f"{key}: {value!r} is not allowed; it must be true or false (a quoted 'false' is a "
                               f"string, and any non-empty string or non-zero number used to count as true).")
+    publish = OmegaConf.select(cfg, "cache.publish", default="copy")
+    if publish not in ("copy", "link"):
+        raise ConfigError(f"cache.publish: {publish!r} is not allowed; it must be 'copy' (each run folder holds "
+                          f"its own copy of its stage tables; a reflink where the file system has them) or 'link' "
+                          f"(hard links into the cache: no extra space, but damage to a cache file reaches "
+                          f"every run that published it).")
     runs = cfg.mc.runs
     if not _is_int(runs) or runs < 1:
         raise ConfigError(f"mc.runs: {runs!r} is not allowed; the number of Monte Carlo runs must be an integer >= 1.")

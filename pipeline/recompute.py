@@ -86,11 +86,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--out", help="write the recomputed metrics.parquet and summary.parquet here")
     args = parser.parse_args(argv)
     from pipeline.errors import PipelineError
+    from pipeline.store import TableDamaged
     try:
         metrics, summary = recompute(Path(args.run))
-    except (RecomputeError, PipelineError, FileNotFoundError) as exc:
+    except (RecomputeError, PipelineError, FileNotFoundError, TableDamaged) as exc:
         print(f"recompute: {exc}", file=sys.stderr)
         return 2
+    # the stored tables as written: a damaged one shows here as rows that differ from the recomputed
     stored_metrics = pl.read_parquet(Path(args.run) / "metrics.parquet")
     stored_summary = pl.read_parquet(Path(args.run) / "summary.parquet")
     # compute time is measured, not recomputed: it comes back from the estimates' metadata

@@ -44,6 +44,8 @@ from typing import Any, Mapping, Sequence
 
 import polars as pl
 
+from pipeline.store import TableDamaged, read_table
+
 FIGURE_KEYS = {"title", "query", "x", "y", "series", "lower", "upper", "kind", "xlabel", "ylabel", "logy",
                "reference"}
 TARGET_KEYS = {"target", "paper", "query"}
@@ -240,7 +242,11 @@ def load_run(run_dir: Path) -> RunTables:
     config = OmegaConf.to_container(OmegaConf.load(run_dir / "config.yaml"), resolve=False)
 
     def read(name: str) -> pl.DataFrame:
-        df = pl.read_parquet(run_dir / name)
+        try:
+            df = read_table(run_dir / name)[0]
+        except TableDamaged as exc:
+            raise ReportError(f"{exc}; re-run the job (or `python -m pipeline.recompute {run_dir}` to see what "
+                              f"differs) before reporting on it") from None
         floats = [c for c, t in df.schema.items() if t in (pl.Float32, pl.Float64)]
         return df.with_columns(pl.col(c).fill_nan(None) for c in floats)
 

@@ -183,8 +183,9 @@ def record_failure(ctx: RunContext, experiment: str, error: str, resolved: dict 
 
 
 class _Stages:
-    def __init__(self, cache: StageCache, ctx: RunContext, provenance: dict[str, str]) -> None:
+    def __init__(self, cache: StageCache, ctx: RunContext, provenance: dict[str, str], link: bool = False) -> None:
         self.cache = cache
+        self.link = link              # cache.publish=link: hard links into the cache instead of copies
         self.ctx = ctx
         self.provenance = provenance
 
@@ -193,7 +194,8 @@ class _Stages:
             from_frame: Callable[[pl.DataFrame, dict[str, str]], Any]) -> tuple[Any, bool, pl.DataFrame]:
         """(the stage's value as the table holds it, whether it came from the cache, the table)."""
         started = time.perf_counter()
-        hit = self.cache.load(stage, key, table)
+        destination = inside(self.ctx.run_dir, publish_as)
+        hit = self.cache.load(stage, key, table, publish_to=None if self.link else destination)
         if hit is not None:
             df = hit[0]
             value = from_frame(*hit)
@@ -209,7 +211,8 @@ class _Stages:
             value = from_frame(df, {k: str(v) for k, v in meta.items()})
             log.info("[%s] computed %s, %.2f s (+%.2f s to write the cache)", stage, describe, computed,
                      time.perf_counter() - started - computed)
-        publish(path, inside(self.ctx.run_dir, publish_as))
+        if hit is None or self.link:
+            publish(path, destination, link=self.link)
         return value, hit is not None, df
 
 
@@ -278,7 +281,7 @@ def run_experiment(cfg: DictConfig, ctx: RunContext) -> RunOutcome:
     study, sensor, estimators = prepared.study, prepared.sensor, prepared.estimators
     cache = StageCache(ctx.artifacts / "cache", enabled=bool(cfg.cache.enabled))
     provenance = {"mtt.experiment": experiment, "mtt.config_hash": config_hash, "mtt.package_version": package_version()}
-    stages = _Stages(cache, ctx, provenance)
+    stages = _Stages(cache, ctx, provenance, link=cfg.cache.get("publish", "copy") == "link")
 
     # the declared stages (pipeline.stages), run in order through the cache: each key covers its
     # config subtree, its inputs' keys and the import closure of the code that makes its table

@@ -17,7 +17,7 @@ import polars as pl
 from filters.base import TrackEstimate
 from pipeline.data import Detections, Truth
 
-SCHEMA_VERSION = "3"          # 2: estimates tables carry the fault column; 3: and the filters' NIS
+SCHEMA_VERSION = "4"          # 2: estimates tables carry the fault column; 3: and the filters' NIS; 4: every table a content checksum
 META_TABLE = "mtt.table"
 META_VERSION = "mtt.schema_version"
 META_UNITS = "mtt.units"

@@ -8,8 +8,9 @@ The cache keeps one file per stage output under ``<artifacts>/cache/<stage>/<key
 The key hashes the stage's resolved config, its inputs' keys, the package version and the
 source of every module in the import closure of the code that produces the stage's output
 (pipeline.fingerprint: user packages named by ``_target_`` included). A cached
-file is trusted only if its metadata names the same table and key; anything else (truncated,
-foreign, another key) is reported, moved aside as ``*.rejected`` (nothing is deleted) and
+file is trusted only if its metadata names the same table and key and its rows match the content checksum
+stored when it was written (``content_checksum``); anything else (truncated, a flipped bit in a data
+page, rows altered under copied metadata, foreign, another key) is reported, moved aside as ``*.rejected`` (nothing is deleted) and
 recomputed.
 
 Concurrent jobs (sweep workers in separate processes, on one machine or on a shared file
@@ -24,8 +25,8 @@ system) share the cache; each may compute and store the same key. What keeps tha
   it a job could move aside the good file another job had just stored (and that job's publish
   would then find no file).
 - a file that vanishes before it is opened is a miss, not a damaged file;
-- publishing (hard-linking) a cache file while another job renames its copy over the same name
-  retries the link: Linux fails a link to an inode whose last name has just gone with ENOENT.
+- a cache hit is published (copied into the run folder) from the file that was opened and
+  verified, so another job's rename over the name in between cannot change what the run gets.
 Two jobs storing the same key both write complete files; the last rename wins, and the stages
 are deterministic, so both hold the same table.
 """
@@ -43,8 +44,9 @@ import time
 import uuid
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterator, Mapping
+from typing import Any, BinaryIO, Iterator, Mapping
 
+import numpy as np
 import polars as pl
 
 try:
@@ -55,7 +57,89 @@ except ImportError:    # not POSIX (Windows): renames are not serialised across 
 from pipeline.schemas import META_TABLE, META_VERSION, SCHEMA_VERSION
 
 META_KEY = "mtt.cache_key"
+META_CHECKSUM = "mtt.content_sha256"
 log = logging.getLogger("pipeline.store")
+
+
+class TableDamaged(Exception):
+    """A table whose rows (or ``mtt.*`` metadata) are not what was written: its content checksum differs."""
+
+
+def _is_plain(dtype: pl.DataType) -> bool:
+    """Numbers, booleans and times, alone or in fixed-size arrays: their values are their machine bytes."""
+    while isinstance(dtype, pl.Array):
+        dtype = dtype.inner
+    return dtype.is_numeric() or dtype == pl.Boolean or dtype.is_temporal()
+
+
+def _hash_column(h: "hashlib._Hash", s: pl.Series) -> None:
+    """Feed one column's values to ``h`` in a canonical byte form that depends on the values only
+    (not on chunks, buffers or the polars version): numbers, booleans, times and fixed-size arrays of
+    them as their machine bytes; other columns of up to 4096 rows as the text of their values; longer
+    ones with their null mask, then strings as lengths + UTF-8 bytes, lists flattened with their
+    lengths, structs field by field. One Series call where possible: a summary table has ~90 small
+    columns, and each expression-backed call costs ~0.1 ms."""
+    h.update(f"{s.name}\x1f{s.dtype}\x1f{s.len()}\x1e".encode())
+    dtype = s.dtype
+    if _is_plain(dtype) and not s.null_count():
+        if dtype.is_temporal():
+            s = s.to_physical()
+        h.update(np.ascontiguousarray(s.to_numpy()).view(np.uint8).tobytes())
+        return
+    if s.len() <= 4096:
+        h.update(repr(s.to_list()).encode())           # repr of a float round-trips it exactly
+        return
+    if s.null_count():
+        h.update(np.packbits(s.is_null().to_numpy()).tobytes())
+        s = s.drop_nulls()
+    if isinstance(dtype, (pl.Array, pl.List)):
+        if isinstance(dtype, pl.List):
+            h.update(s.list.len().to_numpy().astype(np.int64).tobytes())
+        _hash_column(h, s.explode())
+    elif isinstance(dtype, pl.Struct):
+        for field in s.struct.unnest().get_columns():
+            _hash_column(h, field)
+    elif dtype == pl.String or isinstance(dtype, (pl.Categorical, pl.Enum)):
+        s = s.cast(pl.String)
+        h.update(s.str.len_bytes().to_numpy().astype(np.int64).tobytes())
+        h.update((s.str.join("").item() or "").encode())
+    elif _is_plain(dtype):
+        _hash_column(h, s)                              # the nulls are out now
+    else:                                               # Null, Object, Binary, Decimal, ...: their text
+        h.update(repr(s.to_list()).encode())
+
+
+def content_checksum(df: pl.DataFrame, metadata: Mapping[str, str]) -> str:
+    """SHA-256 of a table's rows and of its ``mtt.*`` metadata (the checksum's own key aside).
+
+    Stored in the file's metadata when written (``atomic_write_parquet``) and recomputed on every
+    read (``read_table``, the cache, queries, reports): a Parquet file can still parse after a flipped
+    bit or a zeroed block in a data page (its pages carry no checksum of their own), and a file with
+    other rows under copied metadata parses too; neither may be handed out as the table that was
+    written. About 1 GB/s: a few ms for a study's largest table."""
+    h = hashlib.sha256()
+    for key in sorted(k for k in metadata if k.startswith("mtt.") and k != META_CHECKSUM):
+        h.update(f"{key}\x1f{metadata[key]}\x1e".encode())
+    h.update(f"rows\x1f{df.height}\x1e".encode())
+    for column in df.get_columns():
+        _hash_column(h, column)
+    return h.hexdigest()
+
+
+def verify_checksum(df: pl.DataFrame, metadata: Mapping[str, str], path: Path | str) -> None:
+    """Raise TableDamaged unless ``df`` and ``metadata`` are what was written. A file of schema
+    version 4 or later must carry a checksum (the cache accepts no other version); files without a
+    version or of an older one were written before checksums and are taken as they are."""
+    stored = metadata.get(META_CHECKSUM)
+    if stored is None:
+        version = metadata.get(META_VERSION)
+        if version is None or not version.isdigit() or int(version) < 4:
+            return
+        raise TableDamaged(f"{path}: it carries no content checksum ({META_CHECKSUM}), which every table "
+                           f"this version writes has")
+    if content_checksum(df, metadata) != stored:
+        raise TableDamaged(f"{path}: its content checksum does not match its rows (the file was altered or "
+                           f"damaged after it was written)")
 
 
 def _umask() -> int:
@@ -131,15 +215,25 @@ def _atomic_write(path: Path, write, binary: bool = True, locked: bool = False) 
 
 def atomic_write_parquet(df: pl.DataFrame, path: Path, metadata: Mapping[str, str] | None = None,
                          *, locked: bool = False) -> None:
-    _atomic_write(path, lambda f: df.write_parquet(f, metadata=dict(metadata or {})), locked=locked)
+    """Write ``df`` atomically with ``metadata`` and the content checksum of both (``content_checksum``)."""
+    metadata = {str(k): str(v) for k, v in (metadata or {}).items()}
+    metadata[META_CHECKSUM] = content_checksum(df, metadata)
+    _atomic_write(path, lambda f: df.write_parquet(f, metadata=metadata), locked=locked)
 
 
 def atomic_write_text(text: str, path: Path) -> None:
     _atomic_write(path, lambda f: f.write(text), binary=False)
 
 
-def read_table(path: Path) -> tuple[pl.DataFrame, dict[str, str]]:
-    return pl.read_parquet(path), pl.read_parquet_metadata(path)
+def read_table(path: Path | str) -> tuple[pl.DataFrame, dict[str, str]]:
+    """(rows, metadata) of a table this project wrote, from one open file, its checksum verified
+    (TableDamaged if it does not match)."""
+    with open(path, "rb") as f:
+        meta = pl.read_parquet_metadata(f)
+        f.seek(0)
+        df = pl.read_parquet(f)
+    verify_checksum(df, meta, path)
+    return df, meta
 
 
 def inside(folder: Path, relative: Path | str) -> Path:
@@ -151,25 +245,63 @@ def inside(folder: Path, relative: Path | str) -> Path:
     return target
 
 
-def publish(src: Path, dst: Path) -> None:
-    """Place a cached file into a run directory: hard link if possible (no copy), else copy; atomic."""
+FICLONE = 0x40049409        # linux/fs.h: share the source's extents (btrfs, XFS, bcachefs); no data copied
+
+
+def _clone_or_copy(source: BinaryIO, target: BinaryIO) -> None:
+    """The whole of ``source`` into ``target``: a reflink where the file system has them, else a
+    kernel-side copy (sendfile), else a plain one."""
+    if fcntl is not None:
+        try:
+            fcntl.ioctl(target.fileno(), FICLONE, source.fileno())
+            return
+        except OSError:
+            pass                 # ext4, tmpfs, NFS, another device: copy the bytes
+    size, offset = os.fstat(source.fileno()).st_size, 0
+    try:
+        while offset < size:
+            sent = os.sendfile(target.fileno(), source.fileno(), offset, size - offset)
+            if sent == 0:
+                break
+            offset += sent
+    except OSError:
+        source.seek(offset)
+        target.seek(offset)
+        shutil.copyfileobj(source, target, 1 << 20)
+
+
+def publish(src: Path | BinaryIO, dst: Path, link: bool = False) -> None:
+    """Place a copy of a cached file (a path, or the file the cache opened and verified) into a run
+    folder, atomically.
+
+    A copy, not a hard link: with a link, the run's file *was* the cache file, so damage to one
+    (a truncate, a dd, a bad disk block) changed every earlier run's published tables too. A
+    copy is independent of the cache from the moment it is made; where the file system has
+    reflinks (btrfs, XFS) it shares the data blocks copy-on-write and costs no space, elsewhere
+    (ext4) each run folder holds its own bytes (see the README for the measured cost).
+
+    ``link`` (config ``cache.publish=link``, for a user short of disk): a hard link to the cache file
+    (a path), made read-only so that an accidental in-place write fails instead of reaching every
+    run that shares it; where links are impossible, a copy.
+    """
     dst.parent.mkdir(parents=True, exist_ok=True)
     # unique per call (not per process): threads of one worker process never share a temp name
-    tmp = dst.parent / f".{dst.name}.{os.getpid()}.{uuid.uuid4().hex[:8]}.link.tmp"
+    tmp = dst.parent / f".{dst.name}.{os.getpid()}.{uuid.uuid4().hex[:8]}.copy.tmp"
     try:
-        for attempt in range(100):
+        if link and isinstance(src, (str, Path)):
             try:
+                os.chmod(src, FILE_MODE & 0o444)
                 os.link(src, tmp)
-                break
-            except FileNotFoundError:
-                # Linux refuses to link an inode whose last name went away between the lookup and
-                # the link (ENOENT): another job has just renamed its copy of this stage output
-                # over ``src``. The name holds that newer, equally complete file: link again.
-                if attempt == 99 or not os.path.exists(src):
-                    raise
-            except OSError:         # no hard links here (another file system, FAT, ...): copy
-                shutil.copyfile(src, tmp)
-                break
+                os.replace(tmp, dst)
+                return
+            except OSError:
+                pass          # another file system, FAT, a name just renamed over: copy instead
+        with (open(src, "rb") if isinstance(src, (str, Path)) else contextlib.nullcontext(src)) as source, \
+                open(tmp, "wb") as target:
+            _clone_or_copy(source, target)
+            target.flush()
+            os.fsync(target.fileno())
+        os.chmod(tmp, FILE_MODE)
         os.replace(tmp, dst)
     except BaseException:
         if os.path.lexists(tmp):
@@ -198,7 +330,10 @@ class StageCache:
     def path(self, stage: str, key: str) -> Path:
         return self.root / stage / f"{key}.parquet"
 
-    def load(self, stage: str, key: str, table: str) -> tuple[pl.DataFrame, dict[str, str]] | None:
+    def load(self, stage: str, key: str, table: str, publish_to: Path | None = None
+             ) -> tuple[pl.DataFrame, dict[str, str]] | None:
+        """The cached table and its metadata, or None (a miss, or a file found bad and moved aside).
+        With ``publish_to``, a hit is also copied there from the very file that was read and verified."""
         path = self.path(stage, key)
         if not self.enabled:
             return None
@@ -220,7 +355,12 @@ class StageCache:
                 else:
                     f.seek(0)
                     df = pl.read_parquet(f)
+                    verify_checksum(df, meta, path)
+                    if publish_to is not None:
+                        publish(f, publish_to)
                     return df, meta
+            except TableDamaged as exc:
+                problem = str(exc).split(": ", 1)[1]
             except Exception as exc:  # unreadable: truncated, not Parquet, ...
                 problem = f"it cannot be read ({type(exc).__name__}: {str(exc).splitlines()[0][:200]})"
             # still open: the inode cannot be reused by a new file before the identity check

@@ -6,7 +6,7 @@ same damaged file. What must hold:
 - a reader gets exactly the stored table or a miss, never half a file or another file's data;
 - a damaged file is moved aside exactly once, however many jobs find it at the same moment, and a
   good file that replaced it in the meantime is never moved aside;
-- a job that publishes (hard-links) a cache file into its run directory gets a complete good file,
+- a job that publishes (copies) a cache file into its run directory gets a complete good file,
   even while another job renames its own copy over the same name.
 
 The first tests replay each dangerous interleaving deterministically (the other job's step is
@@ -202,25 +202,28 @@ def test_a_file_deleted_while_it_is_being_read_gives_its_table_or_a_miss_never_a
     assert not [p for p in path.parent.iterdir() if not p.name.startswith(".")]   # nothing moved aside or invented
 
 
-def test_publish_links_again_when_the_name_was_renamed_over_during_the_link(tmp_path, monkeypatch):
-    """The same interleaving replayed: the first links fail as Linux fails them (ENOENT while
-    the name exists, holding the other job's newer file)."""
-    src = tmp_path / "cache" / "k.parquet"
-    src.parent.mkdir()
-    src.write_bytes(b"newer file")
-    real_link, calls = os.link, []
+def test_a_hit_is_published_from_the_file_that_was_verified(tmp_path, monkeypatch):
+    """Another job renames its copy over the name between our check and our copy: the run still gets
+    the file that was read and verified (a copy from the open file, not a second lookup by name)."""
+    cache = StageCache(tmp_path / "cache")
+    key = key_of(7)
+    path = cache.store("scenario", key, expected_frame(key), META)
+    real_read = pl.read_parquet
+    destination = tmp_path / "run" / "truth.parquet"
+    other = path.with_name("other.tmp")
+    other.write_bytes(b"another job's file")
 
-    def link_that_loses_the_race_twice(a, b, *args, **kwargs):
-        calls.append(a)
-        if len(calls) <= 2:
-            raise FileNotFoundError(2, "No such file or directory", str(a))
-        return real_link(a, b, *args, **kwargs)
-
-    monkeypatch.setattr(os, "link", link_that_loses_the_race_twice)
-    publish(src, tmp_path / "run" / "truth.parquet")
-    assert len(calls) == 3 and (tmp_path / "run" / "truth.parquet").read_bytes() == b"newer file"
-    assert os.stat(src).st_nlink == 2                                  # a link, not a copy
-    with pytest.raises(FileNotFoundError):                             # but a source that is gone is an error
+    def read_and_rename_over(source, *args, **kwargs):
+        try:
+            return real_read(source, *args, **kwargs)
+        finally:
+            os.replace(other, path)                            # the other job's rename, mid-load
+    monkeypatch.setattr(pl, "read_parquet", read_and_rename_over)
+    df, _ = cache.load("scenario", key, TABLE, publish_to=destination)
+    monkeypatch.undo()
+    assert df.equals(expected_frame(key)) and real_read(destination).equals(expected_frame(key))
+    assert path.read_bytes() == b"another job's file" and destination.stat().st_nlink == 1   # a copy
+    with pytest.raises(FileNotFoundError):                     # a source that is gone is an error
         publish(tmp_path / "cache" / "gone.parquet", tmp_path / "run" / "x.parquet")
     assert sorted(p.name for p in (tmp_path / "run").iterdir()) == ["truth.parquet"]   # no temp left
 

@@ -104,3 +104,122 @@ def test_sql_reads_the_project_tables_only(tmp_path):
     target = TargetSpec("leak", "t", "p", f"SELECT user AS measured, TRUE AS pass FROM read_csv('{secret}')")
     result = evaluate_target(load_run(ctx.run_dir), target)
     assert result.verdict == "ERROR" and "hunter2" not in result.measured
+
+
+# ---- item 1: content checksums ------------------------------------------------------------------
+
+def _data_region(path: Path) -> tuple[int, int]:
+    """(first, end) byte offsets of a Parquet file's pages: after the magic, before the footer."""
+    raw = path.read_bytes()
+    footer = int.from_bytes(raw[-8:-4], "little")
+    return 4, len(raw) - 8 - footer
+
+
+def _flip(path: Path, offset: int, bit: int = 0) -> None:
+    with open(path, "r+b") as f:
+        f.seek(offset)
+        byte = f.read(1)[0]
+        f.seek(offset)
+        f.write(bytes([byte ^ (1 << bit)]))
+
+
+def test_a_cached_table_that_still_parses_after_a_flipped_bit_is_not_served(tmp_path):
+    """Item 1: single bit flips in a cached table's data pages (footer intact) were served (59 of 60)."""
+    from pipeline.schemas import META_TABLE, META_VERSION, SCHEMA_VERSION
+    from pipeline.store import StageCache
+    rng = np.random.default_rng(3)
+    df = pl.DataFrame({"run": np.repeat(np.arange(20, dtype=np.int32), 50), "x": rng.normal(size=1000) * 80,
+                       "P": pl.Series(rng.normal(size=(1000, 4)), dtype=pl.Array(pl.Float64, 4)),
+                       "fault": np.zeros(1000, dtype=np.uint8)})
+    meta = {META_TABLE: "truth", META_VERSION: SCHEMA_VERSION}
+    cache = StageCache(tmp_path)
+    path = cache.store("scenario", "k", df, meta)
+    pristine = path.read_bytes()
+    first, end = _data_region(path)
+    parsed_but_wrong = 0
+    for offset in np.linspace(first, end - 1, 40).astype(int):
+        path.write_bytes(pristine)
+        _flip(path, int(offset), bit=int(offset) % 8)
+        try:
+            wrong = not pl.read_parquet(path).equals(df)       # what the old cache checked: that it parses
+        except Exception:
+            wrong = False
+        parsed_but_wrong += wrong
+        hit = cache.load("scenario", "k", "truth")
+        # a flip in a page header's statistics leaves the rows as written: serving them is right
+        assert hit is None or hit[0].equals(df), f"a flipped bit at byte {offset} was served"
+        assert not wrong or not path.exists()                  # wrong rows: moved aside, to be recomputed
+    assert parsed_but_wrong >= 10        # many of these flips parse to other rows: only the checksum catches them
+
+
+def test_other_rows_under_copied_metadata_are_not_served(tmp_path):
+    """Item 1: a file with altered rows and the original's metadata (key, checksum) was reused."""
+    from pipeline.schemas import META_TABLE, META_VERSION, SCHEMA_VERSION
+    from pipeline.store import StageCache
+    cache = StageCache(tmp_path)
+    path = cache.store("scenario", "k", pl.DataFrame({"x": [81.49, 12.0]}), {META_TABLE: "truth",
+                                                                           META_VERSION: SCHEMA_VERSION})
+    copied = pl.read_parquet_metadata(path)
+    pl.DataFrame({"x": [float("inf"), 12.0]}).write_parquet(path, metadata=copied)
+    assert cache.load("scenario", "k", "truth") is None and list(path.parent.glob("k.parquet.*.rejected"))
+
+
+def test_a_damaged_cache_file_is_recomputed_and_a_damaged_run_table_is_not_queried(tmp_path, caplog):
+    """Item 1 end to end: study 002's position_rmse of one target became inf, reused with status ok."""
+    from pipeline.query import query
+    from pipeline.report import ReportError, load_run
+    first, ctx = run_in_process(tmp_path, "a", "mc.runs=2", "scenario.steps=20")
+    tracks = sorted((tmp_path / "cache" / "track").glob("*.parquet"))
+    damaged = tracks[0]
+    start, end = _data_region(damaged)
+    pristine = damaged.read_bytes()
+    for offset in range(start + 64, end, 97):                  # a flip that still parses, to different rows
+        damaged.write_bytes(pristine)
+        _flip(damaged, offset)
+        try:
+            if not pl.read_parquet(damaged).equals(pl.read_parquet(ctx.run_dir / "estimates" / "fsimm.parquet")) \
+                    and pl.read_parquet(damaged).height:
+                break
+        except Exception:
+            continue
+    second, _ = run_in_process(tmp_path, "b", "mc.runs=2", "scenario.steps=20")
+    assert "its content checksum does not match its rows" in caplog.text and list(damaged.parent.glob("*.rejected"))
+    def numbers(summary):       # what was computed, not timed
+        return summary.filter(~pl.col("series").str.contains("compute")).select("variant_key", "series", "window", "value")
+    assert numbers(second.summary).equals(numbers(first.summary))        # recomputed: the same numbers
+    # a run folder's table damaged after the run: queries leave it out and say so, the report refuses it
+    summary = ctx.run_dir / "summary.parquet"
+    altered = pl.read_parquet(summary).with_columns(pl.col("value") * 2)
+    altered.write_parquet(summary, metadata=pl.read_parquet_metadata(summary))
+    warnings = []
+    n = query("SELECT COUNT(DISTINCT run_id) AS n FROM summary", root=tmp_path, warn=warnings.append)["n"][0]
+    assert n == 1 and any("skipping damaged" in w and "summary.parquet" in w for w in warnings)
+    with pytest.raises(ReportError, match="content checksum does not match"):
+        load_run(ctx.run_dir)
+
+
+# ---- item 2: published files are copies -------------------------------------------------------
+
+def test_damage_to_the_cache_does_not_reach_earlier_runs(tmp_path):
+    """Item 2: cache files were hard-linked into run folders; truncating one changed earlier runs' tables."""
+    import hashlib
+    _, ctx = run_in_process(tmp_path, "a", "mc.runs=2", "scenario.steps=20")
+    published = sorted(p for p in ctx.run_dir.rglob("*.parquet") if p.name not in ("summary.parquet", "metrics.parquet"))
+    before = {p: hashlib.sha256(p.read_bytes()).hexdigest() for p in published}
+    assert len(published) == 5                         # truth, detections, three variants' estimates
+    for cached in (tmp_path / "cache").rglob("*.parquet"):
+        with open(cached, "r+b") as f:                 # in place, as truncate or dd would
+            f.truncate(100)
+    assert {p: hashlib.sha256(p.read_bytes()).hexdigest() for p in published} == before
+    assert all(p.stat().st_nlink == 1 for p in published)
+
+
+def test_publish_by_link_is_chosen_explicitly_and_is_read_only(tmp_path):
+    """Item 2's space-saving alternative, cache.publish=link: hard links, made read-only so that an
+    in-place write fails rather than reaching every run that shares the file; a bad value is refused."""
+    import stat
+    _, ctx = run_in_process(tmp_path, "a", "mc.runs=2", "scenario.steps=20", "cache.publish=link")
+    truth = ctx.run_dir / "truth.parquet"
+    assert truth.stat().st_nlink == 2 and not truth.stat().st_mode & (stat.S_IWUSR | stat.S_IWGRP | stat.S_IWOTH)
+    with pytest.raises(ConfigError, match="cache.publish: 'hardlink' is not allowed; it must be 'copy'"):
+        run_in_process(tmp_path, "b", "mc.runs=2", "cache.publish=hardlink")
