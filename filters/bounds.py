@@ -17,7 +17,13 @@ the truth is deterministic). For a linear-Gaussian model the bound is the Kalman
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
+
+
+class SingularBoundWarning(RuntimeWarning):
+    """The PCRLB recursion met a matrix it cannot invert; the bound is NaN from that scan on."""
 
 
 def posterior_crlb(F: np.ndarray, Q: np.ndarray, initial: np.ndarray, information: np.ndarray) -> np.ndarray:
@@ -38,12 +44,22 @@ def posterior_crlb(F: np.ndarray, Q: np.ndarray, initial: np.ndarray, informatio
             raise ValueError(f"posterior_crlb: {name} has shape {value.shape}; expected ({n}, {n}) or ({K}, {n}, {n}).")
     F_at = (lambda k: F[k]) if F.ndim == 3 else (lambda k: F)
     Q_at = (lambda k: Q[k]) if Q.ndim == 3 else (lambda k: Q)
-    bounds = np.empty((K, n, n))
+    bounds = np.full((K, n, n), np.nan)
     B = np.asarray(initial, dtype=float)
     bounds[0] = B
     for k in range(1, K):
         predicted = F_at(k) @ B @ F_at(k).T + Q_at(k)
-        B = np.linalg.inv(np.linalg.inv(predicted) + information[k])
+        try:
+            B = np.linalg.inv(np.linalg.inv(predicted) + information[k])
+        except np.linalg.LinAlgError:
+            B = np.full((n, n), np.nan)
+        if not np.isfinite(B).all():
+            # an exactly singular matrix in double precision (noise levels 1e-12 against 1e12, say):
+            # the bound is undefined from here on; NaN, and the caller says so, rather than a crash
+            warnings.warn(f"posterior_crlb: the bound is singular at scan {k} (its covariance or information "
+                          f"cannot be inverted in double precision); scans {k}..{K - 1} are NaN",
+                          SingularBoundWarning, stacklevel=2)
+            break
         B = 0.5 * (B + B.T)
         bounds[k] = B
     return bounds

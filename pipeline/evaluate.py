@@ -5,9 +5,10 @@ Pure functions of arrays; the runner adds provenance columns and writes the tabl
 
 from __future__ import annotations
 
+import contextlib
 import warnings
 from dataclasses import dataclass
-from typing import Mapping, Sequence
+from typing import Iterator, Mapping, Sequence
 
 import numpy as np
 import polars as pl
@@ -142,9 +143,15 @@ def _count(flags: np.ndarray) -> np.ndarray:
     return np.sum((values != 0) & np.isfinite(values), axis=0).astype(float)
 
 
-def quiet_nanmean() -> warnings.catch_warnings:
-    """All-NaN columns (steps before the first estimate) are expected: silence their warnings."""
-    return warnings.catch_warnings(action="ignore", category=RuntimeWarning)
+@contextlib.contextmanager
+def quiet_nanmean() -> Iterator[None]:
+    """All-NaN columns (steps before the first estimate) are expected: silence numpy's warnings about
+    them, and only those (a SingularBoundWarning raised meanwhile still reaches the runner)."""
+    with warnings.catch_warnings():
+        for message in ("Mean of empty slice", "All-NaN slice encountered", "Degrees of freedom <= 0",
+                        "invalid value encountered", "divide by zero encountered"):
+            warnings.filterwarnings("ignore", message=message, category=RuntimeWarning)
+        yield
 
 
 def metrics_frame(time: np.ndarray, variants: Mapping[str, tuple[str, dict[str, np.ndarray]]], runs: int

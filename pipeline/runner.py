@@ -14,6 +14,7 @@ import logging
 import resource
 import time
 import traceback
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
@@ -361,6 +362,22 @@ def evaluate_stage(cfg: DictConfig, study: Study, sensor: Any, truth: Any, estim
     """(per-step metrics, summary) of every variant, from the truth, the estimates as their tables hold
     them, the fault counts of their tables, and the built sensor and study: the run computes it, and
     ``python -m pipeline.recompute`` recomputes a stored run's from its files alone."""
+    from filters.bounds import SingularBoundWarning
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", SingularBoundWarning)
+        tables = _evaluate(cfg, study, sensor, truth, estimates, display, faults, runs)
+    # a bound that cannot be inverted is NaN from that scan (filters.bounds): said once, in the log
+    for message in dict.fromkeys(str(w.message) for w in caught if issubclass(w.category, SingularBoundWarning)):
+        log.warning("[evaluate] %s: position_bound and its ratios are NaN there; the metrics go on", message)
+    for w in caught:
+        if not issubclass(w.category, SingularBoundWarning):
+            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+    return tables
+
+
+def _evaluate(cfg: DictConfig, study: Study, sensor: Any, truth: Any, estimates: dict[str, Any],
+              display: dict[str, str], faults: dict[str, dict[str, int]], runs: int
+              ) -> tuple[pl.DataFrame, pl.DataFrame]:
     variants = list(estimates)
     K = truth.time.size
     per_variant = {v: (display[v], study.per_step_metrics(truth, estimates[v], sensor)) for v in variants}

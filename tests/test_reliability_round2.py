@@ -223,3 +223,32 @@ def test_publish_by_link_is_chosen_explicitly_and_is_read_only(tmp_path):
     assert truth.stat().st_nlink == 2 and not truth.stat().st_mode & (stat.S_IWUSR | stat.S_IWGRP | stat.S_IWOTH)
     with pytest.raises(ConfigError, match="cache.publish: 'hardlink' is not allowed; it must be 'copy'"):
         run_in_process(tmp_path, "b", "mc.runs=2", "cache.publish=hardlink")
+
+
+# ---- item 9: singular covariances ----------------------------------------------------------------
+
+def test_a_singular_bound_is_nan_from_that_scan_not_a_crash():
+    """Item 9: the PCRLB recursion raised LinAlgError on an exactly singular matrix."""
+    import warnings
+    from filters.bounds import SingularBoundWarning, posterior_crlb
+    F, Q = np.stack([np.eye(2)] * 4), np.zeros((2, 2))
+    F[2] = 0.0                                                       # scan 2's prediction: the zero matrix
+    information = np.zeros((4, 2, 2))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        bounds = posterior_crlb(F, Q, np.eye(2), information)
+    assert np.allclose(bounds[:2], np.eye(2)) and np.isnan(bounds[2:]).all()
+    assert [w.category for w in caught] == [SingularBoundWarning] and "scans 2..3 are NaN" in str(caught[0].message)
+
+
+@pytest.mark.parametrize("overrides", [
+    ("sensors.noise_std=1e-12", "models.process_noise_std=1e12"),
+    ("experiment=sonar_case2", "sensors.bearing_std_deg=1e-9", "sensors.range_std=1e-9", "scenario.duration=1200"),
+])
+def test_an_exactly_singular_covariance_flags_the_runs_and_the_job_goes_on(tmp_path, caplog, overrides):
+    """Item 9: these died with LinAlgError (in the bound); the README promises metrics for the rest."""
+    out, ctx = run_in_process(tmp_path, "singular", "mc.runs=2", *overrides)
+    assert "the bound is singular at scan" in caplog.text and "the metrics go on" in caplog.text
+    assert (ctx.run_dir / "summary.parquet").is_file()
+    rmse = out.summary.filter(pl.col("series") == "position_rmse")["value"]
+    assert rmse.len() > 0 and rmse.is_finite().all()
