@@ -61,8 +61,24 @@ def _fail(ctx: RunContext, experiment: str, cfg: DictConfig, message: str, detai
         resolved = OmegaConf.to_container(cfg, resolve=True)
     except Exception:
         resolved = None
-    record_failure(ctx, experiment, message, resolved, detail)
+    try:
+        record_failure(ctx, experiment, message, resolved, detail)
+    except (OSError, PipelineError) as exc:   # the disk that failed the job may fail this too: keep the first error
+        log.error("the failure could not be recorded in %s: %s", ctx.run_dir, exc)
+
+
+def entry() -> None:
+    """``python -m pipeline``: Hydra's app, with one exit code (2) for every input error. Hydra exits
+    1 when it refuses the command line or the config (an unknown key, a missing experiment) before
+    any callback ran; our own refusals exit 2; a bug keeps Python's 1 with its traceback."""
+    from pipeline import folders
+    try:
+        main()
+    except SystemExit as exc:
+        if exc.code == 1 and not folders.COMPOSED:
+            sys.exit(2)
+        raise
 
 
 if __name__ == "__main__":
-    main()
+    entry()

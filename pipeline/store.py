@@ -54,6 +54,7 @@ try:
 except ImportError:    # not POSIX (Windows): renames are not serialised across processes there
     fcntl = None
 
+from pipeline.errors import cannot_write
 from pipeline.schemas import META_TABLE, META_VERSION, SCHEMA_VERSION
 
 META_KEY = "mtt.cache_key"
@@ -196,9 +197,13 @@ def _renames_locked(directory: Path) -> Iterator[None]:
 
 def _atomic_write(path: Path, write, binary: bool = True, locked: bool = False) -> None:
     """Write through a hidden temp file in the target directory, fsync, then rename over ``path``
-    (with ``locked``, the rename alone runs under the directory's rename lock)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    (with ``locked``, the rename alone runs under the directory's rename lock). An OSError (no such
+    folder, no permission, no space, a folder in the way) becomes a StorageError naming the path."""
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    except OSError as exc:
+        raise cannot_write(path, exc) from None
     try:
         with os.fdopen(fd, "wb" if binary else "w") as f:
             write(f)
@@ -207,9 +212,11 @@ def _atomic_write(path: Path, write, binary: bool = True, locked: bool = False) 
         os.chmod(tmp, FILE_MODE)
         with _renames_locked(path.parent) if locked else contextlib.nullcontext():
             os.replace(tmp, path)
-    except BaseException:
+    except BaseException as exc:
         if os.path.exists(tmp):
             os.unlink(tmp)
+        if isinstance(exc, OSError):
+            raise cannot_write(path, exc) from None
         raise
 
 
@@ -284,7 +291,10 @@ def publish(src: Path | BinaryIO, dst: Path, link: bool = False) -> None:
     (a path), made read-only so that an accidental in-place write fails instead of reaching every
     run that shares it; where links are impossible, a copy.
     """
-    dst.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        dst.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise cannot_write(dst, exc) from None
     # unique per call (not per process): threads of one worker process never share a temp name
     tmp = dst.parent / f".{dst.name}.{os.getpid()}.{uuid.uuid4().hex[:8]}.copy.tmp"
     try:
@@ -303,9 +313,11 @@ def publish(src: Path | BinaryIO, dst: Path, link: bool = False) -> None:
             os.fsync(target.fileno())
         os.chmod(tmp, FILE_MODE)
         os.replace(tmp, dst)
-    except BaseException:
+    except BaseException as exc:
         if os.path.lexists(tmp):
             os.unlink(tmp)
+        if isinstance(exc, OSError) and not isinstance(exc, FileNotFoundError):   # a missing source stays itself
+            raise cannot_write(dst, exc) from None
         raise
 
 
@@ -341,6 +353,8 @@ class StageCache:
             f = open(path, "rb")
         except FileNotFoundError:   # not cached yet, or another job has just moved it aside
             return None
+        except OSError as exc:      # a folder where the file belongs, no permission: say which and why
+            raise cannot_write(path, exc, "read the cache file") from None
         with f:   # metadata and rows from this one open file, whatever is renamed over the name meanwhile
             found = os.fstat(f.fileno())
             problem = None

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -252,3 +255,31 @@ def test_an_exactly_singular_covariance_flags_the_runs_and_the_job_goes_on(tmp_p
     assert (ctx.run_dir / "summary.parquet").is_file()
     rmse = out.summary.filter(pl.col("series") == "position_rmse")["value"]
     assert rmse.len() > 0 and rmse.is_finite().all()
+
+
+# ---- item 13: a paragraph and exit 2 for every input error ------------------------------------------
+
+@pytest.mark.parametrize("args, says", [
+    (("paths.artifacts=/proc/x",), "error: paths.artifacts=/proc/x: cannot write in /proc/x: No such file or directory"),
+    (("paths.artifacts=/etc/hostname/x",), "A part of that path is a file, not a folder"),
+    (("paths.artifacts=.", "mc.runs=${nope.x}"), "mc.runs: '${nope.x}' cannot be resolved"),
+    (("paths.artifacts=.", "nonexistent_key=3"), "Could not override 'nonexistent_key'"),   # Hydra's refusal: 2 too
+])
+def test_bad_paths_and_keys_get_a_paragraph_and_exit_2(tmp_path, args, says):
+    """Item 13: /proc/x, a path under a file and an unknown key gave tracebacks or exit 1."""
+    proc = subprocess.run([sys.executable, "-m", "pipeline", "record.enabled=false", *args], cwd=tmp_path,
+                          capture_output=True, text=True, timeout=120,
+                          env={**os.environ, "PYTHONPATH": str(Path(__file__).parents[1])})
+    assert proc.returncode == 2, proc.stderr
+    assert says in proc.stderr and "Traceback" not in proc.stderr
+
+
+def test_a_folder_where_a_cache_file_belongs_is_named(tmp_path):
+    """Item 13: a folder in place of a cache file gave IsADirectoryError's traceback."""
+    assert cli(tmp_path, "mc.runs=2", "scenario.steps=20", "record.enabled=false").returncode == 0
+    (cached,) = (tmp_path / "cache" / "scenario").glob("*.parquet")
+    cached.unlink()
+    cached.mkdir()
+    proc = cli(tmp_path, "mc.runs=2", "scenario.steps=20", "record.enabled=false")
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr
+    assert f"{cached} is a folder where the pipeline keeps a file; move it out of the way" in proc.stderr
