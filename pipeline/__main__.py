@@ -7,6 +7,7 @@ its error (status.json + a failed summary row) and lets the other jobs go on.
 from __future__ import annotations
 
 import logging
+import shutil
 import sys
 from pathlib import Path
 
@@ -40,7 +41,10 @@ def main(cfg: DictConfig) -> float | None:
     try:
         outcome = run_experiment(cfg, ctx)
     except PipelineError as exc:
-        _fail(ctx, experiment, cfg, str(exc), None)
+        if multirun or (run_dir / "status.json").exists():
+            _fail(ctx, experiment, cfg, str(exc), None)    # the sweep lists the job; a started run says why
+        else:
+            _remove_unused_run_folder(run_dir, artifacts)  # refused before any work: nothing is written
         print(f"error: {exc}", file=sys.stderr)
         if not multirun:
             sys.exit(2)
@@ -54,6 +58,26 @@ def main(cfg: DictConfig) -> float | None:
         return None
     print(outcome.table)
     return None
+
+
+def _remove_unused_run_folder(run_dir: Path, artifacts: Path) -> None:
+    """Remove the run folder Hydra made for a single run refused before any stage, if it holds only
+    Hydra's own files (.hydra/ with the composed config, the job's log), and then its parents up to
+    ``artifacts`` while they are empty: a refused command leaves nothing behind."""
+    hydra_files = {"config.yaml", "hydra.yaml", "overrides.yaml"}
+    names = {p.name for p in run_dir.iterdir()} if run_dir.is_dir() else set()
+    hydra = run_dir / ".hydra"
+    if any(n != ".hydra" and not n.endswith(".log") for n in names) or \
+            (hydra.is_dir() and any(p.name not in hydra_files for p in hydra.iterdir())):
+        return
+    shutil.rmtree(run_dir, ignore_errors=True)
+    folder = run_dir.parent
+    try:
+        while folder.resolve() != artifacts.resolve() and folder.resolve().is_relative_to(artifacts.resolve()):
+            folder.rmdir()                 # only if empty
+            folder = folder.parent
+    except OSError:
+        pass
 
 
 def _fail(ctx: RunContext, experiment: str, cfg: DictConfig, message: str, detail: str | None) -> None:

@@ -275,6 +275,13 @@ def _status_row(r: RunDir, root: Path, warn: Warn) -> dict:
         "overrides": overrides if overrides is None else str(overrides),
         "error": _one_line(st.get("error")), "config_hash": st.get("config_hash"),
     })
+    if row["status"] == "running":
+        from pipeline.process import is_gone
+        process = st.get("process")
+        if is_gone(process):      # killed (SIGKILL, out of memory, power cut): it can no longer say so itself
+            row["status"] = "interrupted"
+            row["error"] = (f"its process (pid {process.get('pid')} on {process.get('host')}) ended without "
+                            f"finishing the job; run the same command again to finish it from the cache")
     for k in ("experiment", "sweep", "status", "started_at", "finished_at", "config_hash"):
         if row[k] is not None:
             row[k] = str(row[k])

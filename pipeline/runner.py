@@ -29,6 +29,7 @@ from pipeline.errors import ConfigError
 from pipeline.evaluate import Window, metrics_frame, summary_rows
 from pipeline.faults import FaultChecks, fault_summary
 from pipeline.metrics import unit_of, with_breakdown
+from pipeline.process import identity as process_identity
 from pipeline.tables import ReportContext, format_summary
 from pipeline.stages import declare as declare_stages
 from pipeline.track import SingleTargetStudy, flags_from_table
@@ -79,6 +80,8 @@ def write_status(ctx: RunContext, experiment: str, status: str, *, config_hash: 
         "runs": runs if runs is not None else previous.get("runs"), "package_version": package_version(),
         # the process's high-water mark so far (a pooled sweep worker's covers its earlier jobs too)
         "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0, 1),
+        # who runs it: a reader tells a job still running from one whose process was killed (pipeline.process)
+        "process": process_identity(),
     }
     if detail:
         record["traceback"] = detail

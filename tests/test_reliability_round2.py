@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
@@ -283,3 +284,38 @@ def test_a_folder_where_a_cache_file_belongs_is_named(tmp_path):
     proc = cli(tmp_path, "mc.runs=2", "scenario.steps=20", "record.enabled=false")
     assert proc.returncode == 2 and "Traceback" not in proc.stderr
     assert f"{cached} is a folder where the pipeline keeps a file; move it out of the way" in proc.stderr
+
+
+# ---- item 16: a refused run writes nothing; a killed run shows as interrupted ------------------------
+
+def test_a_refused_single_run_leaves_no_folder_but_a_refused_sweep_job_is_listed(tmp_path):
+    """Item 16: a refused config still created a run folder with a summary.parquet."""
+    proc = cli(tmp_path, "mc.runs=0")
+    assert proc.returncode == 2 and not (tmp_path / "runs").exists()
+    assert not [p for p in tmp_path.rglob("*") if p.is_file()]
+    proc = cli(tmp_path, "-m", "mc.runs=0", "record.enabled=false")
+    (job,) = (tmp_path / "multirun").glob("*/0")
+    assert json.loads((job / "status.json").read_text())["status"] == "failed"
+
+
+def test_a_running_job_whose_process_is_gone_is_listed_as_interrupted(tmp_path):
+    """Item 16: killed runs stayed 'running' forever in mtt-query list."""
+    from pipeline.process import identity
+    from pipeline.query import runs_frame
+    gone = json.loads(subprocess.run([sys.executable, "-c", "import json; from pipeline.process import identity; "
+                                      "print(json.dumps(identity()))"], capture_output=True, text=True, check=True,
+                                     env={**os.environ, "PYTHONPATH": str(Path(__file__).parents[1])}).stdout)
+    for name, process in (("killed", gone), ("alive", identity()), ("elsewhere", {**gone, "host": "another-host"})):
+        folder = tmp_path / "runs" / "ao_vsimm_s1" / name
+        folder.mkdir(parents=True)
+        (folder / "status.json").write_text(json.dumps({"status": "running", "experiment": "ao_vsimm_s1",
+                                                        "started_at": "2026-12-01T10:00:00", "process": process}))
+    rows = {r["run_id"].rsplit("/", 1)[1]: r for r in runs_frame(tmp_path).to_dicts()}
+    assert rows["killed"]["status"] == "interrupted" and f"pid {gone['pid']}" in rows["killed"]["error"]
+    assert rows["alive"]["status"] == "running" and rows["elsewhere"]["status"] == "running"
+
+
+def test_a_job_records_its_process(tmp_path):
+    _, ctx = run_in_process(tmp_path, "a", "mc.runs=2", "scenario.steps=20")
+    process = json.loads((ctx.run_dir / "status.json").read_text())["process"]
+    assert process["pid"] == os.getpid() and process["host"]
