@@ -26,8 +26,9 @@ Experiments declare their part in their YAML under ``report`` (next to ``report.
     reference without a threshold; the query returns one row with ``measured``.
 
 A sweep folder (``multirun/<time>``, or any folder holding runs below it) gets one report per run and
-an ``index.md`` with each run's targets passed. ``--check`` exits 1 when any target is FAIL or
-ERROR. Reports go to ``<run>/report/`` unless ``--out`` is given. The targets and figures are the
+an ``index.md`` with each run's targets passed; a job that failed (or is unfinished, or whose tables
+fail their checksum) gets a line saying why, and the others their reports. ``--check`` exits 1 when
+any target is FAIL or ERROR, or a job has no report. Reports go to ``<run>/report/`` unless ``--out`` is given. The targets and figures are the
 ones the run recorded in its config.yaml; ``--current`` checks a stored run against the
 definitions conf/ holds now (e.g. a target added after the run).
 """
@@ -536,21 +537,51 @@ def write_reports(path: Path, out: Path | None = None, current: bool = False) ->
         raise ReportError(f"{path}: no run below it (no summary.parquet); pass a run folder or a sweep folder")
     if len(runs) == 1 and runs[0] == Path(path):
         return [write_run_report(runs[0], out, current)], None
-    reports = [write_run_report(r, None if out is None else Path(out) / r.relative_to(path), current) for r in runs]
     index = (Path(out) if out is not None else Path(path)) / "index.md"
     lines = [f"# Reproduction reports: {path}", "", "| run | experiment | runs | targets passed | report |",
              "|---|---|---|---|---|"]
-    for rep in reports:
+    reports: list[RunReport | NotReported] = []
+    for run_dir in runs:
+        name = run_dir.relative_to(path) if run_dir != Path(path) else "."
+        try:
+            status = json.loads((run_dir / "status.json").read_text())
+        except (OSError, ValueError):
+            status = {}
+        try:
+            if status.get("status") != "ok":   # a failed or unfinished job: its line says why, the others go on
+                raise ReportError(f"the job is {status.get('status') or 'of unknown status'}"
+                                  + (f": {_one_line(status['error'])}" if status.get("error") else ""))
+            rep = write_run_report(run_dir, None if out is None else Path(out) / run_dir.relative_to(path), current)
+        except ReportError as exc:
+            skipped = NotReported(run_dir, str(status.get("experiment") or "?"), str(exc))
+            reports.append(skipped)
+            lines.append(f"| {name} | {skipped.experiment} | {status.get('runs')} | not reported | "
+                         f"{_cell(skipped.reason)} |")
+            continue
+        reports.append(rep)
         c = rep.counts
         total = sum(c.values())
         verdict = f"{c['PASS']} / {total}" + (f" ({c['FAIL']} FAIL)" if c["FAIL"] else "") + \
             (f" ({c['ERROR']} ERROR)" if c["ERROR"] else "") if total else "none declared"
-        runs_n = json.loads((rep.run_dir / "status.json").read_text()).get("runs")
-        lines.append(f"| {rep.run_dir.relative_to(path) if rep.run_dir != Path(path) else '.'} | {rep.experiment} | "
-                     f"{runs_n} | {verdict} | [{rep.path.name}]({rep.path.relative_to(index.parent)}) |")
+        lines.append(f"| {name} | {rep.experiment} | {status.get('runs')} | {verdict} | "
+                     f"[{rep.path.name}]({rep.path.relative_to(index.parent)}) |")
     index.parent.mkdir(parents=True, exist_ok=True)
     index.write_text("\n".join(lines) + "\n")
     return reports, index
+
+
+@dataclass
+class NotReported:
+    """A job of a sweep with no report (it failed, is unfinished, or its tables are damaged): why."""
+
+    run_dir: Path
+    experiment: str
+    reason: str
+
+
+def _one_line(text: object, width: int = 300) -> str:
+    line = " ".join(str(text).split())
+    return line if len(line) <= width else line[: width - 1] + "…"
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -559,7 +590,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--latest", action="store_true", help="report the newest run or sweep under --artifacts (runs/ or multirun/)")
     parser.add_argument("--artifacts", default="artifacts", help="the artifacts root for --latest (default: artifacts)")
     parser.add_argument("--out", help="write the reports here instead of <run>/report/")
-    parser.add_argument("--check", action="store_true", help="exit 1 when any reproduction target is FAIL or ERROR")
+    parser.add_argument("--check", action="store_true", help="exit 1 when any reproduction target is FAIL or ERROR, or a job has no report")
     parser.add_argument("--current", action="store_true",
                         help="check the targets and figures as conf/ defines them now, not as the run recorded them")
     args = parser.parse_args(argv)
@@ -575,6 +606,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     failed = 0
     for rep in reports:
+        if isinstance(rep, NotReported):
+            print(f"{rep.experiment}: not reported ({rep.run_dir}): {rep.reason}")
+            failed += 1
+            continue
         c = rep.counts
         print(f"{rep.experiment}: {c['PASS']}/{sum(c.values())} targets pass"
               + (f", {c['FAIL']} FAIL" if c["FAIL"] else "") + (f", {c['ERROR']} ERROR" if c["ERROR"] else "")

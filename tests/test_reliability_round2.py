@@ -319,3 +319,18 @@ def test_a_job_records_its_process(tmp_path):
     _, ctx = run_in_process(tmp_path, "a", "mc.runs=2", "scenario.steps=20")
     process = json.loads((ctx.run_dir / "status.json").read_text())["process"]
     assert process["pid"] == os.getpid() and process["host"]
+
+
+# ---- item 17: a report on a sweep with a failed job --------------------------------------------------
+
+def test_a_report_on_a_sweep_with_a_failed_job_reports_the_others_and_says_why(tmp_path):
+    """Item 17: pipeline.report wrote job 0, then exited 2 on the failed job and wrote no index.md."""
+    from pipeline.report import main as report_main
+    proc = cli(tmp_path, "-m", "mc.runs=2,0,3", "scenario.steps=20", "record.enabled=false")
+    assert proc.returncode == 1 and "2 ok, 1 failed" in proc.stderr
+    (sweep,) = (tmp_path / "multirun").iterdir()
+    assert report_main([str(sweep)]) == 0
+    index = (sweep / "index.md").read_text()
+    assert "| 1 | ao_vsimm_s1 | None | not reported | the job is failed: mc.runs: 0 is not allowed" in index
+    assert (sweep / "0" / "report" / "report.md").is_file() and (sweep / "2" / "report" / "report.md").is_file()
+    assert report_main([str(sweep), "--check"]) == 1          # a job without a report fails the check
