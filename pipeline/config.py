@@ -64,6 +64,7 @@ def selected_variants(cfg: DictConfig) -> list[str]:
 
 def validate(cfg: DictConfig) -> None:
     """Reject bad values before any stage runs."""
+    check_targets(cfg)             # before anything imports a _target_ (the kind and type checks do)
     if cfg.get("filters") and cfg.get("sensors") is not None:
         check_measurement_kinds(cfg, selected_variants(cfg))
     check_interpolations(cfg)
@@ -176,6 +177,69 @@ def check_interpolations(cfg: DictConfig) -> None:
             f"define: a config file written for another study may need that study's nodes (the IMMs' "
             f"'${{models}}' is the model set of conf/models/, e.g. +models=acceleration13), or set {key} on the "
             f"command line.") from None
+
+
+PROJECT_PACKAGES = ("pipeline", "filters")
+DOTTED_NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_]*(\.[A-Za-z_][A-Za-z0-9_]*)+")
+
+
+def allowed_packages(cfg: DictConfig) -> tuple[str, ...]:
+    """This project's packages and those the user lists in ``plugins.packages``."""
+    listed = OmegaConf.select(cfg, "plugins.packages", default=None)
+    if listed is None:
+        return PROJECT_PACKAGES
+    if not isinstance(listed, ListConfig) or not all(isinstance(p, str) and p.isidentifier() for p in listed):
+        raise ConfigError(f"plugins.packages: {listed!r} is not allowed; it must be a list of top-level package "
+                          f"names whose classes a config may name with _target_, e.g. plugins.packages=[mytrack].")
+    return PROJECT_PACKAGES + tuple(str(p) for p in listed)
+
+
+def _target_nodes(node: Any, key: str) -> typing.Iterator[tuple[str, Any]]:
+    """(dotted key, value) of every ``_target_`` in a config tree, interpolations resolved."""
+    if isinstance(node, DictConfig):
+        for name in node.keys():
+            child = node._get_node(name)
+            if name == "_target_":
+                yield f"{key}._target_" if key else "_target_", node.get(name)
+            elif isinstance(child, (DictConfig, ListConfig)) or OmegaConf.is_interpolation(node, name):
+                try:
+                    value = node.get(name)
+                except Exception:  # noqa: BLE001 - unresolvable: check_interpolations names it
+                    continue
+                yield from _target_nodes(value, f"{key}.{name}" if key else str(name))
+    elif isinstance(node, ListConfig):
+        for i, child in enumerate(node):
+            yield from _target_nodes(child, f"{key}[{i}]")
+
+
+def check_targets(cfg: DictConfig) -> None:
+    """Every ``_target_`` names a class (or a class's constructor method, like
+    ``AccelerationModelSet.from_config``) of this project (pipeline, filters) or of a package listed in
+    ``plugins.packages``; checked by name *before* anything is imported, then as the imported object.
+
+    instantiate() calls whatever a ``_target_`` names: ``builtins.open`` truncated a file, ``shutil.copyfile``
+    wrote one, and even the type check imported a module (``this``) just to read its signature. A
+    config is data: it may only pick among the components that implement the project's contracts."""
+    from hydra._internal.utils import _locate
+
+    allowed = allowed_packages(cfg)
+    for key, target in _target_nodes(cfg, ""):
+        fix = (f"a _target_ must name a class of this project ({', '.join(PROJECT_PACKAGES)}) or of a package you "
+               f"list in plugins.packages (now {list(allowed[len(PROJECT_PACKAGES):])}), e.g. "
+               f"plugins.packages=[mytrack] for _target_: mytrack.cv.MyFilter")
+        if not isinstance(target, str) or not DOTTED_NAME.fullmatch(target):
+            raise ConfigError(f"{key}: {target!r} is not allowed; {fix}.")
+        if target.split(".", 1)[0] not in allowed:
+            raise ConfigError(f"{key}: {target!r} is not allowed (nothing was imported); {fix}.")
+        try:
+            obj = _locate(target)
+        except Exception as exc:  # noqa: BLE001 - any import failure: the user's name is wrong
+            raise ConfigError(f"{key}: {target!r} cannot be imported ({type(exc).__name__}: "
+                              f"{str(exc).splitlines()[0] if str(exc) else ''}); it must name a class, e.g. "
+                              f"filters.imm.FSIMM.") from None
+        constructor = inspect.ismethod(obj) and inspect.isclass(obj.__self__)
+        if not (inspect.isclass(obj) or constructor):
+            raise ConfigError(f"{key}: {target!r} is a {type(obj).__name__}, not a class; {fix}.")
 
 
 def filter_classes_in_conf() -> dict[str, Any]:

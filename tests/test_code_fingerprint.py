@@ -67,7 +67,8 @@ def run_cli(tmp_path: Path, user: Path) -> subprocess.CompletedProcess:
     env = {**os.environ, "HYDRA_FULL_ERROR": "0", "PYTHONPATH": f"{user}{os.pathsep}{ROOT}"}
     return subprocess.run([sys.executable, "-m", "pipeline", f"paths.artifacts={tmp_path / 'artifacts'}",
                            "experiment=ao_vsimm_s1", "mc.runs=3", "scenario.steps=40", "record.enabled=false",
-                           "+filters.cv={_target_: mytrack.cv.CV, name: CV}", "variants=[fsimm,cv]"],
+                           "+filters.cv={_target_: mytrack.cv.CV, name: CV}", "variants=[fsimm,cv]",
+                           "plugins.packages=[mytrack]"],
                           cwd=tmp_path, capture_output=True, text=True, timeout=180, env=env)
 
 

@@ -91,7 +91,7 @@ def test_the_pipeline_flags_injected_faults_per_run_and_step_and_counts_them(tmp
     from pipeline.runner import RunContext, run_experiment
     from tests.conftest import CONF
 
-    overrides = ["mc.runs=5", "scenario.steps=30", "filters.fsimm._target_=tests.faulty_filters.FaultyFSIMM",
+    overrides = ["mc.runs=5", "scenario.steps=30", "filters.fsimm._target_=tests.faulty_filters.FaultyFSIMM", "plugins.packages=[tests]",
                  "variants=[fsimm,vsimm]"]
     with initialize_config_dir(version_base="1.3", config_dir=str(CONF)):
         cfg = compose("config", overrides=[f"paths.artifacts={tmp_path}", "record.enabled=false", *overrides])

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -334,3 +335,32 @@ def test_a_report_on_a_sweep_with_a_failed_job_reports_the_others_and_says_why(t
     assert "| 1 | ao_vsimm_s1 | None | not reported | the job is failed: mc.runs: 0 is not allowed" in index
     assert (sweep / "0" / "report" / "report.md").is_file() and (sweep / "2" / "report" / "report.md").is_file()
     assert report_main([str(sweep), "--check"]) == 1          # a job without a report fails the check
+
+
+# ---- item 5: _target_ names a class of the project or of a listed package -----------------------
+
+@pytest.mark.parametrize("node, says", [
+    ("{_target_:builtins.open,file:VICTIM,mode:w}", "'builtins.open' is not allowed (nothing was imported)"),
+    ("{_target_:shutil.copyfile,src:VICTIM,dst:VICTIM.copy}", "'shutil.copyfile' is not allowed"),
+    ("{_target_:this.nothing}", "'this.nothing' is not allowed (nothing was imported)"),
+    ("{_target_:filters.models.constant_velocity_transition,dt:1.0}", "is a function, not a class"),
+])
+def test_a_target_outside_the_allowed_packages_is_refused_before_import(tmp_path, node, says):
+    """Item 5: '+filters.evil={_target_:builtins.open,...}' truncated a file; this.nothing was imported."""
+    import importlib
+    victim = tmp_path / "victim.txt"
+    victim.write_text("keep")
+    sys.modules.pop("this", None)
+    with pytest.raises(ConfigError, match=f"filters.evil._target_: .*{re.escape(says)}"):
+        run_in_process(tmp_path, "bad", "mc.runs=2", f"+filters.evil={node.replace('VICTIM', str(victim))}")
+    assert victim.read_text() == "keep" and not (tmp_path / "victim.txt.copy").exists()
+    assert "this" not in sys.modules and importlib.util.find_spec("this") is not None
+    assert not (tmp_path / "cache").exists()
+
+
+def test_a_listed_package_may_name_its_classes(tmp_path):
+    with pytest.raises(ConfigError, match=r"'tests.faulty_filters.FaultyFSIMM' is not allowed .*plugins.packages \(now \[\]\)"):
+        run_in_process(tmp_path, "no", "mc.runs=2", "filters.fsimm._target_=tests.faulty_filters.FaultyFSIMM")
+    out, _ = run_in_process(tmp_path, "yes", "mc.runs=4", "scenario.steps=30", "plugins.packages=[tests]",
+                            "filters.fsimm._target_=tests.faulty_filters.FaultyFSIMM", "variants=[fsimm]")
+    assert out.summary.height > 0
