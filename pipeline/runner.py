@@ -28,13 +28,14 @@ from pipeline.config import build, flatten, selected_variants, validate
 from pipeline.errors import ConfigError
 from pipeline.evaluate import Window, metrics_frame, summary_rows
 from pipeline.faults import FaultChecks, fault_summary
+from pipeline.memory import check as check_memory
 from pipeline.metrics import unit_of, with_breakdown
 from pipeline.process import identity as process_identity
 from pipeline.tables import ReportContext, format_summary
 from pipeline.stages import declare as declare_stages
 from pipeline.track import SingleTargetStudy, flags_from_table
 from pipeline.store import (StageCache, atomic_write_parquet, atomic_write_text, inside, package_version, publish,
-                            stable_hash, stage_key)
+                            read_table, stable_hash, stage_key)
 
 log = logging.getLogger("pipeline")
 
@@ -195,8 +196,11 @@ class _Stages:
 
     def run(self, stage: str, key: str, table: str, compute: Callable[[], Any],
             to_frame: Callable[[Any], tuple[pl.DataFrame, dict]], publish_as: Path, describe: str,
-            from_frame: Callable[[pl.DataFrame, dict[str, str]], Any]) -> tuple[Any, bool, pl.DataFrame]:
-        """(the stage's value as the table holds it, whether it came from the cache, the table)."""
+            from_frame: Callable[[pl.DataFrame, dict[str, str]], Any],
+            chunks: Callable[[], Any] | None = None) -> tuple[Any, bool, pl.DataFrame]:
+        """(the stage's value as the table holds it, whether it came from the cache, the table).
+        With ``chunks`` (an iterator of (frame, metadata) per chunk of runs), a computed table is
+        streamed to the cache one chunk at a time, then read back whole."""
         started = time.perf_counter()
         destination = inside(self.ctx.run_dir, publish_as)
         hit = self.cache.load(stage, key, table, publish_to=None if self.link else destination)
@@ -205,10 +209,26 @@ class _Stages:
             value = from_frame(*hit)
             path = self.cache.path(stage, key)
             log.info("[%s] reused cached %s (key %s) %s, %.2f s", stage, path.name, key, describe, time.perf_counter() - started)
+        elif chunks is not None:
+            stream = self.cache.stream(stage, key)
+            try:
+                meta: dict = {}
+                for part, meta in chunks():
+                    stream.write(part)
+                    del part                       # one chunk in memory at a time
+                path = stream.finish({**meta, **self.provenance})
+            except BaseException:
+                stream.abort()
+                raise
+            computed = time.perf_counter() - started
+            df, stored = read_table(path)
+            value = from_frame(df, stored)
+            log.info("[%s] computed %s in chunks of runs, %.2f s (written as it went)", stage, describe, computed)
         else:
             value = compute()
             computed = time.perf_counter() - started
             df, meta = to_frame(value)
+            value = None                           # the table holds it now: one copy in memory, not two
             path = self.cache.store(stage, key, df, {**meta, **self.provenance})
             # later stages see exactly what the table holds (e.g. the float32 compact covariance),
             # so a recomputed stage and a cached one give bit-identical metrics
@@ -277,11 +297,13 @@ def run_experiment(cfg: DictConfig, ctx: RunContext) -> RunOutcome:
     resolved = OmegaConf.to_container(cfg, resolve=True)
     config_hash = stable_hash(resolved)
     runs, seed = int(cfg.mc.runs), int(cfg.mc.seed)
+    memory = check_memory(cfg, prepared.scenario, prepared.sensor, len(prepared.variants))   # before any work
     ctx.run_dir.mkdir(parents=True, exist_ok=True)
     write_status(ctx, experiment, "running", config_hash=config_hash, runs=runs)
     atomic_write_text(OmegaConf.to_yaml(cfg, resolve=True), ctx.run_dir / "config.yaml")
     variants = prepared.variants
     log.info("experiment %s: %d Monte Carlo runs, seed %d, variants %s -> %s", experiment, runs, seed, variants, ctx.run_dir)
+    log.info("memory: about %.2f GB at the peak (estimated; pipeline.memory)", memory.peak / 2**30)
     study, sensor, estimators = prepared.study, prepared.sensor, prepared.estimators
     cache = StageCache(ctx.artifacts / "cache", enabled=bool(cfg.cache.enabled))
     provenance = {"mtt.experiment": experiment, "mtt.config_hash": config_hash, "mtt.package_version": package_version()}
@@ -291,17 +313,20 @@ def run_experiment(cfg: DictConfig, ctx: RunContext) -> RunOutcome:
     # config subtree, its inputs' keys and the import closure of the code that makes its table
     outputs: dict[str, Any] = {}
     keys: dict[str, str] = {}
-    tables: dict[str, pl.DataFrame] = {}
+    flags: dict[str, Any] = {}             # each track table's fault column (R, K); the tables themselves are let go
     cached: dict[str, bool] = {}
     declared, track_input = declare_stages(cfg, resolved, prepared, build_fault_checks(cfg))
     for stage in declared:
         inputs = {name: outputs[name] for name in stage.inputs}
         key = stage_key(stage.cache, stage.config, tuple(keys[name] for name in stage.inputs), stage.producers)
-        outputs[stage.output], cached[stage.output], tables[stage.output] = stages.run(
+        outputs[stage.output], cached[stage.output], table = stages.run(
             stage.cache, key, stage.table, lambda s=stage, i=inputs: s.compute(**i),
             lambda value, s=stage, i=inputs: s.to_frame(value, i), stage.publish_as, stage.describe(inputs),
-            stage.from_frame)
+            stage.from_frame, None if stage.chunks is None else lambda s=stage, i=inputs: s.chunks(**i))
         keys[stage.output] = key
+        if stage.cache == "track":
+            flags[stage.output] = flags_from_table(table, runs, outputs["truth"].time.size)
+        del table
         if stage.output == "truth":       # the windows must fit the scenario before any filtering
             for which in ("windows", "count_windows"):
                 _windows(cfg, which, outputs["truth"].time.size, warn=True)
@@ -320,7 +345,7 @@ def run_experiment(cfg: DictConfig, ctx: RunContext) -> RunOutcome:
                      models)
         estimates[v] = estimate
         display[v] = str(getattr(estimators[v], "name", v))
-        faults[v] = fault_summary(flags_from_table(tables[f"estimates/{v}"], runs, K))
+        faults[v] = fault_summary(flags[f"estimates/{v}"])
         if faults[v]["diverged_runs"]:
             log.warning("[track] %s: %d of %d runs hit a numerical fault (%s); their rows are flagged in "
                         "estimates/%s.parquet (column fault)", display[v], faults[v]["diverged_runs"], runs,

@@ -12,12 +12,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Mapping
+from typing import Any, Callable, Iterator, Mapping
 
 import polars as pl
 
 from pipeline import schemas
-from pipeline.track import filter_runs, with_fault_flags
+from pipeline.track import filter_chunks, filter_runs, truth_runs, with_fault_flags
 
 Codec = Callable[[Any, Mapping[str, Any]], tuple[pl.DataFrame, dict]]     # (value, the inputs) -> table
 Decoder = Callable[[pl.DataFrame, dict[str, str]], Any]
@@ -35,6 +35,9 @@ class Stage:
     to_frame: Codec                          # the table (a track table's fault column needs the truth)
     from_frame: Decoder
     describe: Callable[[Mapping[str, Any]], str]   # the log line's subject, from the inputs
+    # optional: the table in chunks of runs, chunks(**inputs) -> iterator of (frame, metadata), streamed
+    # to the file one at a time (mc.chunk_runs); the value is then decoded from the written table
+    chunks: Callable[..., Iterator[tuple[pl.DataFrame, dict]]] | None = None
 
     @property
     def publish_as(self) -> Path:
@@ -67,6 +70,15 @@ def declare(cfg: Any, resolved: Mapping[str, Any], prepared: Any, fault_checks: 
               lambda detections, _: schemas.detections_to_frame(detections), schemas.detections_from_frame,
               lambda i: f"{runs} runs x {i['truth'].time.size} scans"),
     ]
+    streamed = bool(chunk_runs) and chunk_runs < runs
+
+    def track_chunks(truth, detections, estimator):
+        """Each chunk of runs filtered, flagged and framed with its global run numbers."""
+        view = track_input(truth, detections)
+        for first, part in filter_chunks(estimator, view, chunk_runs):
+            df, meta = with_fault_flags(study, part, truth_runs(truth, first, first + chunk_runs), fault_checks)
+            yield df.with_columns(pl.col("run") + first), meta
+
     for v in prepared.variants:
         estimator = prepared.estimators[v]
         name = getattr(estimator, "name", v)
@@ -78,5 +90,6 @@ def declare(cfg: Any, resolved: Mapping[str, Any], prepared: Any, fault_checks: 
             lambda truth, detections, e=estimator: filter_runs(e, track_input(truth, detections), chunk_runs),
             lambda estimate, inputs: with_fault_flags(study, estimate, inputs["truth"], fault_checks),
             study.estimate_from_frame,
-            lambda i, n=name: f"{n}: {runs} runs x {i['truth'].time.size} scans"))
+            lambda i, n=name: f"{n}: {runs} runs x {i['truth'].time.size} scans",
+            (lambda truth, detections, e=estimator: track_chunks(truth, detections, e)) if streamed else None))
     return stages, track_input

@@ -73,58 +73,80 @@ def _is_plain(dtype: pl.DataType) -> bool:
     return dtype.is_numeric() or dtype == pl.Boolean or dtype.is_temporal()
 
 
-def _hash_column(h: "hashlib._Hash", s: pl.Series) -> None:
-    """Feed one column's values to ``h`` in a canonical byte form that depends on the values only
-    (not on chunks, buffers or the polars version): numbers, booleans, times and fixed-size arrays of
-    them as their machine bytes; other columns of up to 4096 rows as the text of their values; longer
-    ones with their null mask, then strings as lengths + UTF-8 bytes, lists flattened with their
-    lengths, structs field by field. One Series call where possible: a summary table has ~90 small
-    columns, and each expression-backed call costs ~0.1 ms."""
-    h.update(f"{s.name}\x1f{s.dtype}\x1f{s.len()}\x1e".encode())
-    dtype = s.dtype
-    if _is_plain(dtype) and not s.null_count():
-        if dtype.is_temporal():
-            s = s.to_physical()
-        h.update(np.ascontiguousarray(s.to_numpy()).view(np.uint8).tobytes())
-        return
-    if s.len() <= 4096:
-        h.update(repr(s.to_list()).encode())           # repr of a float round-trips it exactly
-        return
-    if s.null_count():
-        h.update(np.packbits(s.is_null().to_numpy()).tobytes())
-        s = s.drop_nulls()
-    if isinstance(dtype, (pl.Array, pl.List)):
-        if isinstance(dtype, pl.List):
-            h.update(s.list.len().to_numpy().astype(np.int64).tobytes())
-        _hash_column(h, s.explode())
-    elif isinstance(dtype, pl.Struct):
-        for field in s.struct.unnest().get_columns():
-            _hash_column(h, field)
-    elif dtype == pl.String or isinstance(dtype, (pl.Categorical, pl.Enum)):
-        s = s.cast(pl.String)
-        h.update(s.str.len_bytes().to_numpy().astype(np.int64).tobytes())
-        h.update((s.str.join("").item() or "").encode())
-    elif _is_plain(dtype):
-        _hash_column(h, s)                              # the nulls are out now
-    else:                                               # Null, Object, Binary, Decimal, ...: their text
-        h.update(repr(s.to_list()).encode())
+class _ColumnHash:
+    """One column's canonical byte streams, fed chunk by chunk: the same digest however the rows are
+    split (a table streamed in chunks of runs, read back whole), and whatever the buffers, chunking or
+    polars version. Streams: the row numbers of nulls; the non-null values (numbers, booleans, times
+    and fixed-size arrays of them as machine bytes; strings as UTF-8 bytes with a separate stream of
+    their lengths; anything else as the repr of each value, which round-trips floats exactly)."""
+
+    def __init__(self, name: str, dtype: pl.DataType) -> None:
+        self.name, self.dtype = name, dtype
+        self.nulls, self.values, self.lengths = hashlib.sha256(), hashlib.sha256(), hashlib.sha256()
+
+    def update(self, s: pl.Series, first_row: int) -> None:
+        dtype = s.dtype
+        if s.null_count():
+            self.nulls.update((np.flatnonzero(s.is_null().to_numpy()) + first_row).astype("<i8").tobytes())
+            s = s.drop_nulls()
+        if _is_plain(dtype):
+            values = (s.to_physical() if dtype.is_temporal() else s).to_numpy()
+            self.values.update(np.ascontiguousarray(values).view(np.uint8).tobytes())
+        elif dtype == pl.String or isinstance(dtype, (pl.Categorical, pl.Enum)):
+            if s.len() <= 4096:                 # one Series call: a summary has ~90 small columns
+                encoded = [v.encode() for v in s.cast(pl.String).to_list()]
+                self.lengths.update(np.array([len(v) for v in encoded], dtype="<i8").tobytes())
+                self.values.update(b"".join(encoded))
+            else:
+                s = s.cast(pl.String)
+                self.lengths.update(s.str.len_bytes().to_numpy().astype("<i8").tobytes())
+                self.values.update((s.str.join("").item() or "").encode())
+        else:                                   # lists, structs, Null, Object, Binary, Decimal: each value's text
+            self.values.update("".join(f"{v!r}\x1e" for v in s.to_list()).encode())
+
+    def digest(self) -> bytes:
+        return hashlib.sha256(f"{self.name}\x1f{self.dtype}".encode() + self.nulls.digest() + self.values.digest()
+                              + self.lengths.digest()).digest()
+
+
+class TableChecksum:
+    """The content checksum of a table fed in chunks of rows (``update``), then of its metadata
+    (``hexdigest``): equal to ``content_checksum`` of the whole table."""
+
+    def __init__(self) -> None:
+        self.columns: dict[str, _ColumnHash] = {}
+        self.rows = 0
+
+    def update(self, df: pl.DataFrame) -> None:
+        if not self.columns:
+            self.columns = {name: _ColumnHash(name, dtype) for name, dtype in df.schema.items()}
+        elif [(c.name, c.dtype) for c in self.columns.values()] != list(df.schema.items()):
+            raise ValueError(f"TableChecksum: a chunk with columns {df.schema} after {[c.name for c in self.columns.values()]}")
+        for column in df.get_columns():
+            self.columns[column.name].update(column, self.rows)
+        self.rows += df.height
+
+    def hexdigest(self, metadata: Mapping[str, str]) -> str:
+        h = hashlib.sha256()
+        for key in sorted(k for k in metadata if k.startswith("mtt.") and k != META_CHECKSUM):
+            h.update(f"{key}\x1f{metadata[key]}\x1e".encode())
+        h.update(f"rows\x1f{self.rows}\x1e".encode())
+        for column in self.columns.values():
+            h.update(column.digest())
+        return h.hexdigest()
 
 
 def content_checksum(df: pl.DataFrame, metadata: Mapping[str, str]) -> str:
     """SHA-256 of a table's rows and of its ``mtt.*`` metadata (the checksum's own key aside).
 
-    Stored in the file's metadata when written (``atomic_write_parquet``) and recomputed on every
-    read (``read_table``, the cache, queries, reports): a Parquet file can still parse after a flipped
-    bit or a zeroed block in a data page (its pages carry no checksum of their own), and a file with
-    other rows under copied metadata parses too; neither may be handed out as the table that was
-    written. About 1 GB/s: a few ms for a study's largest table."""
-    h = hashlib.sha256()
-    for key in sorted(k for k in metadata if k.startswith("mtt.") and k != META_CHECKSUM):
-        h.update(f"{key}\x1f{metadata[key]}\x1e".encode())
-    h.update(f"rows\x1f{df.height}\x1e".encode())
-    for column in df.get_columns():
-        _hash_column(h, column)
-    return h.hexdigest()
+    Stored in the file's metadata when written (``atomic_write_parquet``, ``TableStream``) and
+    recomputed on every read (``read_table``, the cache, queries, reports): a Parquet file can still
+    parse after a flipped bit or a zeroed block in a data page (its pages carry no checksum of their
+    own), and a file with other rows under copied metadata parses too; neither may be handed out as
+    the table that was written. About 1 GB/s: a few ms for a study's largest table."""
+    checksum = TableChecksum()
+    checksum.update(df)
+    return checksum.hexdigest(metadata)
 
 
 def verify_checksum(df: pl.DataFrame, metadata: Mapping[str, str], path: Path | str) -> None:
@@ -230,6 +252,60 @@ def atomic_write_parquet(df: pl.DataFrame, path: Path, metadata: Mapping[str, st
 
 def atomic_write_text(text: str, path: Path) -> None:
     _atomic_write(path, lambda f: f.write(text), binary=False)
+
+
+class TableStream:
+    """A table written chunk by chunk (one Parquet row group per chunk) to a hidden temp file beside
+    ``path``; ``finish(metadata)`` adds the metadata with the content checksum of all chunks and
+    renames the file into place (under the directory's rename lock with ``locked``), ``abort()``
+    removes it. Only one chunk is in memory at a time: ``mc.chunk_runs`` bounds a track stage's
+    memory by streaming each chunk of runs here instead of concatenating them first."""
+
+    def __init__(self, path: Path, locked: bool = False) -> None:
+        self.path, self.locked = Path(path), locked
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            fd, tmp = tempfile.mkstemp(dir=self.path.parent, prefix=f".{self.path.name}.", suffix=".tmp")
+        except OSError as exc:
+            raise cannot_write(self.path, exc) from None
+        os.close(fd)
+        self.tmp = Path(tmp)
+        self.writer = None
+        self.checksum = TableChecksum()
+
+    def write(self, df: pl.DataFrame) -> None:
+        import pyarrow.parquet as pq
+        table = df.to_arrow()
+        try:
+            if self.writer is None:
+                self.writer = pq.ParquetWriter(self.tmp, table.schema, compression="zstd")
+            self.writer.write_table(table)
+        except OSError as exc:
+            self.abort()
+            raise cannot_write(self.path, exc) from None
+        self.checksum.update(df)
+
+    def finish(self, metadata: Mapping[str, str]) -> Path:
+        metadata = {str(k): str(v) for k, v in metadata.items()}
+        metadata[META_CHECKSUM] = self.checksum.hexdigest(metadata)
+        try:
+            self.writer.add_key_value_metadata(metadata)
+            self.writer.close()
+            with open(self.tmp, "rb+") as f:
+                os.fsync(f.fileno())
+            os.chmod(self.tmp, FILE_MODE)
+            with _renames_locked(self.path.parent) if self.locked else contextlib.nullcontext():
+                os.replace(self.tmp, self.path)
+        except OSError as exc:
+            self.abort()
+            raise cannot_write(self.path, exc) from None
+        return self.path
+
+    def abort(self) -> None:
+        with contextlib.suppress(Exception):
+            if self.writer is not None:
+                self.writer.close()
+        self.tmp.unlink(missing_ok=True)
 
 
 def read_table(path: Path | str) -> tuple[pl.DataFrame, dict[str, str]]:
@@ -404,7 +480,20 @@ class StageCache:
         log.warning("cache file %s was not used: %s. It was moved to %s and the stage is recomputed.",
                     path, problem, aside.name)
 
+    def stream(self, stage: str, key: str) -> TableStream:
+        """A TableStream onto the cache name of (stage, key); finish() with the metadata (the key is added)."""
+        return _KeyedStream(self.path(stage, key), key)
+
     def store(self, stage: str, key: str, df: pl.DataFrame, metadata: Mapping[str, str]) -> Path:
         path = self.path(stage, key)
         atomic_write_parquet(df, path, {**metadata, META_KEY: key}, locked=True)
         return path
+
+
+class _KeyedStream(TableStream):
+    def __init__(self, path: Path, key: str) -> None:
+        super().__init__(path, locked=True)
+        self.key = key
+
+    def finish(self, metadata: Mapping[str, str]) -> Path:
+        return super().finish({**metadata, META_KEY: self.key})

@@ -6,7 +6,8 @@ Each variant is an estimator built from its config node (``_target_``) with
 
 from __future__ import annotations
 
-from typing import Any
+import dataclasses
+from typing import Any, Iterator
 
 import numpy as np
 import polars as pl
@@ -90,6 +91,23 @@ def filter_runs(estimator: Any, track_input: Any, chunk_runs: int | None) -> Any
     parts = [estimator.run(track_input.select(range(first, min(first + chunk_runs, runs))))
              for first in range(0, runs, chunk_runs)]
     return type(parts[0]).concat_runs(parts)
+
+
+def filter_chunks(estimator: Any, track_input: Any, chunk_runs: int) -> Iterator[tuple[int, Any]]:
+    """(first run, the estimate of the next ``chunk_runs`` runs), chunk after chunk, so that only one
+    chunk's estimate is in memory at a time (the track stage streams each to its table). Each chunk's
+    ``compute_seconds`` is the running total: the last one's is the whole stage's."""
+    runs, total = _runs_of(track_input), 0.0
+    for first in range(0, runs, chunk_runs):
+        part = estimator.run(track_input.select(range(first, min(first + chunk_runs, runs))))
+        total += float(part.compute_seconds)
+        yield first, dataclasses.replace(part, compute_seconds=total)
+
+
+def truth_runs(truth: Any, first: int, stop: int) -> Any:
+    """The truth of runs first..stop-1 (what a chunk's estimate is checked against)."""
+    return dataclasses.replace(truth, state=truth.state[first:stop],
+                               labels={name: values[first:stop] for name, values in truth.labels.items()})
 
 
 def _runs_of(track_input: Any) -> int:

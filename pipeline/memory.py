@@ -1,0 +1,108 @@
+"""How much memory a job will need at its peak, estimated before any stage; refused if more than the
+machine has (``mc.max_memory_gb``, default: what is available when the job starts).
+
+The estimate is built from one run of the scenario and the sensor (a few ms) and the size of the
+filters' output: a job holds the truth, the measurements and every variant's estimates of all runs
+(the metrics are taken across runs), and at the peak one variant's table beside its decoded
+estimate. Per run::
+
+    2 (truth + measurements) + sum over variants (estimate) + 2 max (estimate)
+
+with an estimate of K steps x T objects x (n + n^2) float64 times 2 (the filters' extras: mode
+probabilities, NIS, ...), plus 300 MB for the interpreter and its libraries. Calibrated against
+measured peaks (README "What happens when..."): within a factor of about 1.5 of the truth, on the
+cautious side, which is what a refusal needs.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from pipeline.errors import ConfigError
+
+BASELINE_BYTES = 300 * 2**20
+EXTRAS_FACTOR = 2.0
+
+
+def _nbytes(obj: Any) -> int:
+    total = 0
+    for value in vars(obj).values():
+        if isinstance(value, np.ndarray):
+            total += value.nbytes
+        elif isinstance(value, dict):
+            total += sum(v.nbytes for v in value.values() if isinstance(v, np.ndarray))
+    return total
+
+
+def available_bytes() -> int | None:
+    """MemAvailable, or less where a cgroup (a container, a job scheduler) limits this process."""
+    available = None
+    try:
+        for line in Path("/proc/meminfo").read_text().splitlines():
+            if line.startswith("MemAvailable:"):
+                available = int(line.split()[1]) * 1024
+    except OSError:
+        try:
+            available = os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+        except (ValueError, OSError, AttributeError):
+            return None
+    try:
+        limit = Path("/sys/fs/cgroup/memory.max").read_text().strip()
+        if limit != "max":
+            used = int(Path("/sys/fs/cgroup/memory.current").read_text())
+            available = min(available or 2**62, int(limit) - used)
+    except (OSError, ValueError):
+        pass
+    return available
+
+
+@dataclass(frozen=True)
+class MemoryEstimate:
+    runs: int
+    steps: int
+    per_run_inputs: int          # truth + measurements, bytes per run
+    per_run_estimates: int       # all variants' estimates, bytes per run
+    per_run_peak: int            # the estimate's bytes per run at the peak
+
+    @property
+    def peak(self) -> int:
+        return BASELINE_BYTES + self.runs * self.per_run_peak
+
+    def max_runs(self, budget: int) -> int:
+        return max(0, (budget - BASELINE_BYTES) // max(self.per_run_peak, 1))
+
+
+def estimate(scenario: Any, sensor: Any, variants: int, runs: int, seed: int) -> MemoryEstimate:
+    """The peak estimate from one run of the scenario and the sensor (see the module docstring)."""
+    truth = scenario.generate(1, seed)
+    inputs = _nbytes(truth) + _nbytes(sensor.measure(truth, seed))
+    _, K, T, n = truth.state.shape
+    per_variant = int(K * T * (n + n * n) * 8 * EXTRAS_FACTOR)
+    return MemoryEstimate(runs, K, inputs, variants * per_variant, 2 * inputs + (variants + 2) * per_variant)
+
+
+def check(cfg: Any, scenario: Any, sensor: Any, variants: int) -> MemoryEstimate:
+    """Refuse (ConfigError) a job whose estimated peak exceeds ``mc.max_memory_gb`` or, when that is
+    null, the memory available now; return the estimate (the runner logs it)."""
+    runs, seed = int(cfg.mc.runs), int(cfg.mc.seed)
+    guess = estimate(scenario, sensor, variants, runs, seed)
+    limit_gb = cfg.mc.get("max_memory_gb")
+    if limit_gb is not None and (isinstance(limit_gb, bool) or not isinstance(limit_gb, (int, float)) or limit_gb <= 0):
+        raise ConfigError(f"mc.max_memory_gb: {limit_gb!r} is not allowed; it must be a number of GB > 0, or null "
+                          f"(the memory available when the job starts).")
+    budget = int(limit_gb * 2**30) if limit_gb is not None else available_bytes()
+    if budget is not None and guess.peak > budget:
+        where = f"mc.max_memory_gb={limit_gb}" if limit_gb is not None else "available on this machine now"
+        raise ConfigError(
+            f"mc.runs: {runs} runs need about {guess.peak / 2**30:.1f} GB at the job's peak (estimated from one run: "
+            f"{guess.steps} steps, truth and measurements {guess.per_run_inputs * runs / 2**20:,.0f} MB, the "
+            f"{variants} variants' estimates {guess.per_run_estimates * runs / 2**20:,.0f} MB), more than the "
+            f"{budget / 2**30:.1f} GB {where}. Lower mc.runs to at most {guess.max_runs(budget)} (several jobs "
+            f"with different mc.seed give independent runs), or, if the estimate is too cautious for your "
+            f"filters, set mc.max_memory_gb to what the job may use. Nothing was computed.")
+    return guess
