@@ -87,8 +87,8 @@ def _fail(ctx: RunContext, experiment: str, cfg: DictConfig, message: str, detai
         resolved = None
     try:
         record_failure(ctx, experiment, message, resolved, detail)
-    except (OSError, PipelineError) as exc:   # the disk that failed the job may fail this too: keep the first error
-        log.error("the failure could not be recorded in %s: %s", ctx.run_dir, exc)
+    except Exception as exc:  # e.g. the disk that failed the job is still full: report the job's error, not this one
+        log.error("could not record the failure in %s: %s", ctx.run_dir, describe_exception(exc)[0])
 
 
 def entry() -> None:

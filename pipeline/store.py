@@ -250,6 +250,10 @@ def atomic_write_parquet(df: pl.DataFrame, path: Path, metadata: Mapping[str, st
     _atomic_write(path, lambda f: df.write_parquet(f, metadata=metadata), locked=locked)
 
 
+def atomic_write_bytes(data: bytes, path: Path) -> None:
+    _atomic_write(path, lambda f: f.write(data))
+
+
 def atomic_write_text(text: str, path: Path) -> None:
     _atomic_write(path, lambda f: f.write(text), binary=False)
 

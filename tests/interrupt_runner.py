@@ -6,7 +6,8 @@ Modes (the stall writes MARKER first, then sleeps until killed):
 - ``parquet-half:<name>``: the first Parquet write whose target is named ``<name>`` (e.g. a cache
   key's file of the track stage: ``track``, or ``summary.parquet``) has written half its bytes;
 - ``parquet-rename:<name>``: that write is complete and fsync'ed but not yet renamed;
-- ``rrd``: the recording has logged its data and is about to flush and finalise the .rrd.
+- ``rrd``: half of the recording's bytes are in its temp file (the .rrd goes through the same
+  atomic writer as the tables: ``parquet-half:recording.rrd``).
 
 The patches replace library calls from outside the product code; nothing in ``pipeline/`` knows
 about them.
@@ -38,6 +39,8 @@ def install(mode: str, marker: str) -> None:
 
     from pipeline import store
 
+    if mode == "rrd":
+        mode = "parquet-half:recording.rrd"
     kind, _, name = mode.partition(":")
     if kind in ("parquet-half", "parquet-rename"):
         original_write = store._atomic_write
@@ -69,15 +72,6 @@ def install(mode: str, marker: str) -> None:
 
         store._atomic_write = atomic_write
         _ = pl
-    elif kind == "rrd":
-        import rerun as rr
-        original_flush = rr.RecordingStream.flush
-
-        def flush_then_stall(self, *args, **kwargs):
-            stall(marker)
-            return original_flush(self, *args, **kwargs)
-
-        rr.RecordingStream.flush = flush_then_stall
     else:
         raise SystemExit(f"unknown mode {mode!r}")
 
