@@ -14,10 +14,10 @@ from pathlib import Path
 import hydra
 from hydra.core.hydra_config import HydraConfig
 from hydra.types import RunMode
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
 from pipeline.errors import PipelineError
-from pipeline.runner import RunContext, describe_exception, record_failure, run_experiment
+from pipeline.runner import RunContext, describe_exception, job_context, record_job_failure, run_experiment
 
 log = logging.getLogger("pipeline")
 
@@ -26,35 +26,24 @@ log = logging.getLogger("pipeline")
 def main(cfg: DictConfig) -> float | None:
     hc = HydraConfig.get()
     multirun = hc.mode == RunMode.MULTIRUN
-    run_dir = Path(hc.runtime.output_dir)
-    # relative to where the run or sweep was started (hydra.runtime.cwd is recorded there), not to
-    # this process's working directory: a Ray worker of an existing cluster starts elsewhere
-    artifacts = Path(str(hc.runtime.cwd)) / str(cfg.paths.artifacts)
-    sweep = None
-    if multirun:
-        try:
-            sweep = Path(hc.sweep.dir).resolve().relative_to(artifacts.resolve()).as_posix()
-        except ValueError:
-            sweep = str(hc.sweep.dir)
-    ctx = RunContext(run_dir, artifacts, list(OmegaConf.to_container(hc.overrides.task, resolve=False)), sweep, hc.job.num if multirun else None)
-    experiment = str(cfg.get("experiment_name"))
+    ctx = job_context(cfg, hc)
     try:
         outcome = run_experiment(cfg, ctx)
     except PipelineError as exc:
-        if multirun or (run_dir / "status.json").exists():
-            _fail(ctx, experiment, cfg, str(exc), None)    # the sweep lists the job; a started run says why
+        if multirun or (ctx.run_dir / "status.json").exists():
+            _fail(ctx, cfg, str(exc), None)               # the sweep lists the job; a started run says why
         else:
-            _remove_unused_run_folder(run_dir, artifacts)  # refused before any work: nothing is written
+            _remove_unused_run_folder(ctx.run_dir, ctx.artifacts)   # refused before any work: nothing is written
         print(f"error: {exc}", file=sys.stderr)
         if not multirun:
             sys.exit(2)
         return None
     except Exception as exc:  # a bug or a numerical failure: keep the sweep alive, keep the evidence
         message, detail = describe_exception(exc)
-        _fail(ctx, experiment, cfg, message, detail)
+        _fail(ctx, cfg, message, detail)
         if not multirun:
             raise
-        log.error("job %s failed: %s (traceback in %s)", hc.job.num, message, run_dir / "status.json")
+        log.error("job %s failed: %s (traceback in %s)", hc.job.num, message, ctx.run_dir / "status.json")
         return None
     print(outcome.table)
     return None
@@ -80,13 +69,9 @@ def _remove_unused_run_folder(run_dir: Path, artifacts: Path) -> None:
         pass
 
 
-def _fail(ctx: RunContext, experiment: str, cfg: DictConfig, message: str, detail: str | None) -> None:
+def _fail(ctx: RunContext, cfg: DictConfig, message: str, detail: str | None) -> None:
     try:
-        resolved = OmegaConf.to_container(cfg, resolve=True)
-    except Exception:
-        resolved = None
-    try:
-        record_failure(ctx, experiment, message, resolved, detail)
+        record_job_failure(ctx, cfg, message, detail)
     except Exception as exc:  # e.g. the disk that failed the job is still full: report the job's error, not this one
         log.error("could not record the failure in %s: %s", ctx.run_dir, describe_exception(exc)[0])
 

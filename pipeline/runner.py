@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 import polars as pl
+from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
 from pipeline import schemas
@@ -70,7 +71,10 @@ def _now() -> str:
 
 
 def write_status(ctx: RunContext, experiment: str, status: str, *, config_hash: str = "", runs: int | None = None,
-                 error: str | None = None, started_at: str | None = None, detail: str | None = None) -> None:
+                 error: str | None = None, started_at: str | None = None, detail: str | None = None,
+                 peak_rss_mb: float | None = None) -> None:
+    """``peak_rss_mb``: the job's process's peak memory when another process writes its status (the
+    launcher, for a job whose process died); by default this process's."""
     path = ctx.run_dir / "status.json"
     previous = json.loads(path.read_text()) if path.exists() else {}
     record = {
@@ -80,7 +84,8 @@ def write_status(ctx: RunContext, experiment: str, status: str, *, config_hash: 
         "config_hash": config_hash or previous.get("config_hash", ""), "sweep": ctx.sweep, "job_num": ctx.job_num,
         "runs": runs if runs is not None else previous.get("runs"), "package_version": package_version(),
         # the process's high-water mark so far (a pooled sweep worker's covers its earlier jobs too)
-        "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0, 1),
+        "peak_rss_mb": round(peak_rss_mb if peak_rss_mb is not None
+                             else resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0, 1),
         # who runs it: a reader tells a job still running from one whose process was killed (pipeline.process)
         "process": process_identity(),
     }
@@ -179,12 +184,42 @@ def failure_summary(ctx: RunContext, experiment: str, error: str, resolved: dict
     return df
 
 
-def record_failure(ctx: RunContext, experiment: str, error: str, resolved: dict | None, detail: str | None) -> None:
+def record_failure(ctx: RunContext, experiment: str, error: str, resolved: dict | None, detail: str | None,
+                   peak_rss_mb: float | None = None) -> None:
     """A failed job leaves status.json and a one-row summary saying why, so sweeps stay queryable."""
     ctx.run_dir.mkdir(parents=True, exist_ok=True)
-    write_status(ctx, experiment, "failed", error=error, detail=detail)
+    write_status(ctx, experiment, "failed", error=error, detail=detail, peak_rss_mb=peak_rss_mb)
     atomic_write_parquet(failure_summary(ctx, experiment, error, resolved), ctx.run_dir / "summary.parquet",
                          schemas.table_metadata("summary", {}, {}))
+
+
+def record_job_failure(ctx: RunContext, cfg: DictConfig, error: str, detail: str | None,
+                       peak_rss_mb: float | None = None) -> None:
+    """record_failure for a job's config, resolved where it resolves (a bad interpolation may be the error)."""
+    try:
+        resolved = OmegaConf.to_container(cfg, resolve=True)
+    except Exception:
+        resolved = None
+    record_failure(ctx, str(cfg.get("experiment_name")), error, resolved, detail, peak_rss_mb)
+
+
+def job_context(cfg: DictConfig, hydra_cfg: DictConfig) -> RunContext:
+    """The RunContext of the Hydra job with config ``cfg`` and Hydra node ``hydra_cfg`` (HydraConfig.get()
+    in the job; ``config.hydra`` in a callback): the task function and SweepSummary.on_job_end, which
+    records a job whose process died, must name the same folder, sweep and job."""
+    multirun = hydra_cfg.mode == RunMode.MULTIRUN
+    # relative to where the run or sweep was started (hydra.runtime.cwd is recorded there), not to
+    # this process's working directory: a Ray worker of an existing cluster starts elsewhere
+    artifacts = Path(str(hydra_cfg.runtime.cwd)) / str(cfg.paths.artifacts)
+    sweep = None
+    if multirun:
+        try:
+            sweep = Path(hydra_cfg.sweep.dir).resolve().relative_to(artifacts.resolve()).as_posix()
+        except ValueError:
+            sweep = str(hydra_cfg.sweep.dir)
+    overrides = list(OmegaConf.to_container(hydra_cfg.overrides.task, resolve=False))
+    return RunContext(Path(hydra_cfg.runtime.output_dir), artifacts, overrides, sweep,
+                      hydra_cfg.job.num if multirun else None)
 
 
 class _Stages:
