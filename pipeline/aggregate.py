@@ -21,6 +21,7 @@ import sys
 from pathlib import Path
 
 import polars as pl
+from hydra.core.utils import JobReturn, JobStatus
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, open_dict, read_write
 
@@ -69,6 +70,26 @@ class SweepSummary(Callback):
             config.hydra.sweep.dir = absolute
             # every job's config is re-composed from these overrides (+ its own), in whatever process
             config.hydra.overrides.hydra.append(f"hydra.sweep.dir={_quoted_override_value(absolute)}")
+
+    def on_job_end(self, config: DictConfig, job_return: JobReturn, **kwargs) -> None:
+        """A job that ended FAILED without recording its failure gets status.json ``failed`` and the
+        failed summary row, so the sweep summary lists it: a job whose process died (the isolated
+        launcher calls this from its own process then, with the cause as the error) or whose task
+        function raised past its own handler. A job that recorded itself is left as it is."""
+        if job_return.status != JobStatus.FAILED or job_return.cfg is None:
+            return
+        from pipeline.runner import describe_exception, job_context, record_job_failure
+        ctx = job_context(job_return.cfg, config.hydra)
+        status_path = ctx.run_dir / "status.json"
+        if status_path.exists() and json.loads(status_path.read_text()).get("status") in ("ok", "failed"):
+            return
+        error = job_return._return_value     # return_value re-raises it (or, for a dead job, is None)
+        if isinstance(error, BaseException) and error.__traceback__ is not None:
+            message, detail = describe_exception(error)
+        else:                                 # never raised: the launcher's account of a dead process
+            message, detail = str(error), None
+        # a dead job's own peak memory (the launcher measured it), not this process's
+        record_job_failure(ctx, job_return.cfg, message, detail, getattr(error, "peak_rss_mb", None))
 
     def on_multirun_end(self, config: DictConfig, **kwargs) -> None:
         sweep_dir = Path(config.hydra.sweep.dir)
