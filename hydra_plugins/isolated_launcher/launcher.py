@@ -1,0 +1,206 @@
+"""IsolatedLauncher: each job of a sweep in its own fresh process, at most ``n_jobs`` at a time.
+
+A job whose process dies without a result (killed by a signal, or exited early) fails that job
+only: the launcher builds the job's config as the job would have, hands Hydra's on_job_end
+callbacks a FAILED JobReturn saying how the process ended (the project's SweepSummary callback
+records it as the job's failure: status.json and a failed summary row), and the other jobs go on.
+"""
+
+# no `from __future__ import annotations`: Hydra's plugin scan runs this module outside sys.modules,
+# where @dataclass cannot resolve string annotations
+import copy
+import logging
+import os
+import pickle
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from concurrent.futures import Future, ThreadPoolExecutor, as_completed
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Sequence
+
+from hydra.core.hydra_config import HydraConfig
+from hydra.core.singleton import Singleton
+from hydra.core.utils import JobReturn, JobStatus, configure_log, filter_overrides, setup_globals
+from hydra.plugins.launcher import Launcher
+from hydra.types import HydraContext, TaskFunction
+from joblib import cpu_count
+from joblib.externals import cloudpickle
+from omegaconf import DictConfig, OmegaConf, open_dict, read_write
+
+log = logging.getLogger(__name__)
+
+
+class JobProcessDied(RuntimeError):
+    """A job's process ended without handing back a result: the job failed, not the sweep."""
+
+    def __init__(self, message: str, peak_rss_mb: float | None = None) -> None:
+        super().__init__(message)
+        self.peak_rss_mb = peak_rss_mb      # the job's process's, for its status (not the launcher's)
+
+
+@dataclass
+class DeadJobReturn(JobReturn):
+    """FAILED, yet reading ``return_value`` gives None instead of raising the error.
+
+    Hydra's BasicSweeper reads every job's return_value right after the launch to re-raise a
+    job's exception, which would abort the sweep before on_multirun_end (the sweep summary). The
+    error stays in ``_return_value`` for the on_job_end callbacks; the sweep goes on, as it does
+    for a job whose task function records its own failure and returns.
+    """
+
+    @property  # type: ignore[override]
+    def return_value(self) -> Any:
+        return None
+
+    @return_value.setter
+    def return_value(self, value: Any) -> None:
+        self._return_value = value
+
+
+@dataclass
+class ProcessOutcome:
+    """How one job's process ended: its exit code (-N: killed by signal N) and its result, if any."""
+
+    exit_code: int
+    result: bytes | None
+    seconds: float
+    peak_rss_mb: float
+
+
+def jobs_at_a_time(n_jobs: int) -> int:
+    """joblib's convention: n_jobs > 0 is that many; -1 is one per CPU, -2 all but one, ..."""
+    if n_jobs == 0:
+        raise ValueError("hydra.launcher.n_jobs: 0 runs nothing; give a positive count or -1 (one per CPU)")
+    return n_jobs if n_jobs > 0 else max(1, cpu_count() + 1 + n_jobs)
+
+
+def describe_death(outcome: ProcessOutcome) -> str:
+    """The error a dead job's status.json carries: what ended the process, when, at what memory."""
+    if outcome.exit_code < 0:
+        number = -outcome.exit_code
+        try:
+            name = signal.Signals(number).name
+        except ValueError:
+            name = "unknown signal"
+        why = "; the out-of-memory killer sends this" if number == signal.SIGKILL else ""
+        ended = f"was killed by signal {number} ({name}{why})"
+    else:
+        ended = f"exited with code {outcome.exit_code} without a result (its output above says why)"
+    return f"the job's process {ended} after {outcome.seconds:.1f} s, at a peak of {outcome.peak_rss_mb:.0f} MB"
+
+
+def run_job_process(job_input: bytes, result_path: Path) -> ProcessOutcome:
+    """Start ``job_process`` in a fresh interpreter, feed it the job, wait for it to end.
+
+    os.wait4 (not Popen.wait) so the outcome carries the process's own peak memory: for a job the
+    out-of-memory killer ended, that is the number to look at.
+    """
+    started = time.monotonic()
+    process = subprocess.Popen([sys.executable, "-m", f"{__package__}.job_process", str(result_path)],
+                               stdin=subprocess.PIPE)
+    assert process.stdin is not None
+    try:
+        process.stdin.write(job_input)
+    except BrokenPipeError:
+        pass                      # it died before reading its job: its exit code says how
+    finally:
+        try:
+            process.stdin.close()
+        except BrokenPipeError:
+            pass
+    _, wait_status, usage = os.wait4(process.pid, 0)
+    process.returncode = os.waitstatus_to_exitcode(wait_status)
+    result = result_path.read_bytes() if result_path.exists() else None
+    return ProcessOutcome(process.returncode, result, time.monotonic() - started, usage.ru_maxrss / 1024.0)
+
+
+class IsolatedLauncher(Launcher):
+    def __init__(self, n_jobs: int = -1) -> None:
+        self.n_jobs = n_jobs
+        self.config: DictConfig | None = None
+        self.task_function: TaskFunction | None = None
+        self.hydra_context: HydraContext | None = None
+
+    def setup(self, *, hydra_context: HydraContext, task_function: TaskFunction, config: DictConfig) -> None:
+        self.config = config
+        self.task_function = task_function
+        self.hydra_context = hydra_context
+
+    def launch(self, job_overrides: Sequence[Sequence[str]], initial_job_idx: int) -> Sequence[JobReturn]:
+        """Run the jobs, each in its own process; return their JobReturns in the order given."""
+        setup_globals()
+        assert self.config is not None and self.task_function is not None and self.hydra_context is not None
+        configure_log(self.config.hydra.hydra_logging, self.config.hydra.verbose)
+        sweep_dir = Path(str(self.config.hydra.sweep.dir))
+        sweep_dir.mkdir(parents=True, exist_ok=True)
+        at_a_time = jobs_at_a_time(self.n_jobs)
+        log.info(f"Isolated launcher: {len(job_overrides)} jobs, each in its own process, {at_a_time} at a time")
+        log.info(f"Launching jobs, sweep output dir : {sweep_dir}")
+        for position, overrides in enumerate(job_overrides):
+            log.info(f"\t#{initial_job_idx + position} : {' '.join(filter_overrides(overrides))}")
+
+        # pickled once for all jobs; each job's input adds its num and overrides
+        shared = cloudpickle.dumps((self.hydra_context, self.config, self.task_function, Singleton.get_state()))
+        returns: list[JobReturn | None] = [None] * len(job_overrides)
+        with tempfile.TemporaryDirectory(prefix="hydra-isolated-") as results_dir:
+            pool = ThreadPoolExecutor(max_workers=at_a_time, thread_name_prefix="job-process")
+            try:
+                futures: dict[Future[ProcessOutcome], int] = {}
+                for position, overrides in enumerate(job_overrides):
+                    job_input = pickle.dumps((list(sys.path), shared, initial_job_idx + position, list(overrides)))
+                    futures[pool.submit(run_job_process, job_input, Path(results_dir) / f"{position}.pkl")] = position
+                for future in as_completed(futures):
+                    position = futures[future]
+                    returns[position] = self._job_return(initial_job_idx + position, job_overrides[position],
+                                                         future.result())
+            finally:              # interrupted: start no further job, wait for the running ones
+                pool.shutdown(wait=True, cancel_futures=True)
+        assert all(isinstance(r, JobReturn) for r in returns)
+        return returns  # type: ignore[return-value]
+
+    def _job_return(self, job_num: int, overrides: Sequence[str], outcome: ProcessOutcome) -> JobReturn:
+        if outcome.result is not None:
+            try:
+                job_return = cloudpickle.loads(outcome.result)
+                assert isinstance(job_return, JobReturn)
+                return job_return
+            except Exception as exc:
+                error = f"the job's result could not be read back: {exc!r}"
+        else:
+            error = describe_death(outcome)
+        log.error(f"job #{job_num} ({' '.join(filter_overrides(overrides))}) failed: {error}")
+        return self._report_dead_job(job_num, overrides, JobProcessDied(error, outcome.peak_rss_mb))
+
+    def _report_dead_job(self, job_num: int, overrides: Sequence[str], error: JobProcessDied) -> JobReturn:
+        """The FAILED JobReturn run_job would have built, handed to the on_job_end callbacks here,
+        in the launcher's process, since the job's own process cannot any more."""
+        assert self.config is not None and self.hydra_context is not None
+        sweep_config = self.hydra_context.config_loader.load_sweep_config(self.config, list(overrides))
+        with open_dict(sweep_config):
+            sweep_config.hydra.job.id = f"{sweep_config.hydra.job.name}_{job_num}"
+            sweep_config.hydra.job.num = job_num
+        previous_hydra_config = HydraConfig.instance().cfg
+        HydraConfig.instance().set_config(sweep_config)
+        try:
+            output_dir = Path(str(sweep_config.hydra.sweep.dir)) / str(sweep_config.hydra.sweep.subdir)
+            with read_write(sweep_config.hydra.runtime), open_dict(sweep_config.hydra.runtime):
+                sweep_config.hydra.runtime.output_dir = str(output_dir.absolute())
+            HydraConfig.instance().set_config(sweep_config)
+            output_dir.mkdir(parents=True, exist_ok=True)
+            task_config = copy.deepcopy(sweep_config)
+            with read_write(task_config), open_dict(task_config):
+                del task_config["hydra"]
+            job_return = DeadJobReturn(
+                overrides=list(OmegaConf.to_container(sweep_config.hydra.overrides.task)),  # type: ignore[arg-type]
+                cfg=task_config, hydra_cfg=copy.deepcopy(HydraConfig.instance().cfg),
+                working_dir=str(output_dir) if sweep_config.hydra.job.chdir else os.getcwd(),
+                task_name=str(sweep_config.hydra.job.name), status=JobStatus.FAILED,
+                _return_value=error)
+            self.hydra_context.callbacks.on_job_end(config=sweep_config, job_return=job_return)
+            return job_return
+        finally:
+            HydraConfig.instance().cfg = previous_hydra_config  # type: ignore[assignment]
