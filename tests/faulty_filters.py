@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+import os
+import signal
 from dataclasses import replace
 
 import numpy as np
 
 from filters.imm import FSIMM
+from filters.models import AccelerationModelSet
 
 
 class FaultyFSIMM(FSIMM):
@@ -21,3 +24,18 @@ class FaultyFSIMM(FSIMM):
         covariance[2, 20:] = np.nan
         covariance[3, 15] = -np.eye(covariance.shape[-1])
         return replace(estimate, state=state, covariance=covariance)
+
+
+class SelfKillingFSIMM(FSIMM):
+    """FSIMM whose process SIGKILLs itself as it starts filtering when ``sigkill`` is true: a sweep
+    job that dies the way the out-of-memory killer ends one (tests/test_sweep_isolation.py)."""
+
+    def __init__(self, models: AccelerationModelSet, name: str = "FSIMM", initial_model: str = "m1",
+                 sigkill: bool = False) -> None:
+        super().__init__(models, name, initial_model)
+        self.sigkill = sigkill
+
+    def run(self, measurements):
+        if self.sigkill:
+            os.kill(os.getpid(), signal.SIGKILL)
+        return super().run(measurements)
