@@ -1,4 +1,4 @@
-"""Determinism: for a given seed the tables are bit-identical whatever the launcher (basic,
+"""Determinism: for a given seed the tables are bit-identical whatever the launcher (basic, isolated,
 joblib), whether a stage was computed or read back from the cache, and however the runs are
 chunked."""
 
@@ -78,9 +78,11 @@ def test_the_launcher_does_not_change_the_tables(tmp_path):
     args = ["experiment=ao_vsimm_s1", "mc.seed=1,2", "mc.runs=3", "scenario.steps=40", "record.enabled=false"]
     basic = sweep(tmp_path / "basic", *args)
     joblib = sweep(tmp_path / "joblib", *args, "hydra/launcher=joblib", "hydra.launcher.n_jobs=2")
-    assert len(basic) == len(joblib) == 2
-    for a, b in zip(basic, joblib):
+    isolated = sweep(tmp_path / "isolated", *args, "hydra/launcher=isolated", "hydra.launcher.n_jobs=2")
+    assert len(basic) == len(joblib) == len(isolated) == 2
+    for a, b, c in zip(basic, joblib, isolated):
         assert_same_tables(a, b)
+        assert_same_tables(a, c)
 
 
 
