@@ -76,11 +76,23 @@ def _fail(ctx: RunContext, cfg: DictConfig, message: str, detail: str | None) ->
         log.error("could not record the failure in %s: %s", ctx.run_dir, describe_exception(exc)[0])
 
 
+def register_isolated_launcher() -> None:
+    """Make ``hydra/launcher=isolated`` (hydra_plugins/isolated_launcher) work however the package is
+    installed. Hydra 1.3 finds plugins by walking the ``hydra_plugins`` namespace, and a setuptools>=64
+    editable install (``pip install -e .``) serves it through an import hook that cannot be walked
+    (hydra issue #2359): the module imports, but Hydra never sees the launcher or its config node."""
+    from hydra.core.plugins import Plugins
+    plugins = Plugins.instance()          # scans first: a launcher it found is the class registered below
+    from hydra_plugins.isolated_launcher import config, launcher  # noqa: F401  (config: registers the node)
+    plugins.register(launcher.IsolatedLauncher)
+
+
 def entry() -> None:
     """``python -m pipeline``: Hydra's app, with one exit code (2) for every input error. Hydra exits
     1 when it refuses the command line or the config (an unknown key, a missing experiment) before
     any callback ran; our own refusals exit 2; a bug keeps Python's 1 with its traceback."""
     from pipeline import folders
+    register_isolated_launcher()
     try:
         main()
     except SystemExit as exc:
