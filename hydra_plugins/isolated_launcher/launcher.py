@@ -8,19 +8,23 @@ records it as the job's failure: status.json and a failed summary row), and the 
 
 # no `from __future__ import annotations`: Hydra's plugin scan runs this module outside sys.modules,
 # where @dataclass cannot resolve string annotations
+import contextlib
 import copy
 import logging
 import os
 import pickle
+import queue
 import signal
 import subprocess
 import sys
 import tempfile
+import threading
 import time
-from concurrent.futures import Future, ThreadPoolExecutor, as_completed
+from collections import deque
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 
 from hydra.core.hydra_config import HydraConfig
 from hydra.core.singleton import Singleton
@@ -93,29 +97,54 @@ def describe_death(outcome: ProcessOutcome) -> str:
     return f"the job's process {ended} after {outcome.seconds:.1f} s, at a peak of {outcome.peak_rss_mb:.0f} MB"
 
 
-def run_job_process(job_input: bytes, result_path: Path) -> ProcessOutcome:
-    """Start ``job_process`` in a fresh interpreter, feed it the job, wait for it to end.
+class JobProcess:
+    """One job's process, started from the launcher's main thread, and a thread that feeds it its job
+    and waits for it to end, then puts ``(position, ProcessOutcome)`` on ``ended``.
 
     os.wait4 (not Popen.wait) so the outcome carries the process's own peak memory: for a job the
     out-of-memory killer ended, that is the number to look at.
     """
-    started = time.monotonic()
-    process = subprocess.Popen([sys.executable, "-m", f"{__package__}.job_process", str(result_path)],
-                               stdin=subprocess.PIPE)
-    assert process.stdin is not None
-    try:
-        process.stdin.write(job_input)
-    except BrokenPipeError:
-        pass                      # it died before reading its job: its exit code says how
-    finally:
+
+    def __init__(self, position: int, job_input: bytes, result_path: Path, ended: "queue.SimpleQueue[Any]") -> None:
+        self.position, self.result_path, self.ended = position, result_path, ended
+        self.started = time.monotonic()
+        self.process = subprocess.Popen([sys.executable, "-m", f"{__package__}._job_process", str(result_path)],
+                                        stdin=subprocess.PIPE)
+        self.thread = threading.Thread(target=self._feed_and_wait, args=(job_input,), daemon=True,
+                                       name=f"job-process-{position}")
+        self.thread.start()
+
+    def _feed_and_wait(self, job_input: bytes) -> None:
         try:
-            process.stdin.close()
-        except BrokenPipeError:
+            assert self.process.stdin is not None
+            with contextlib.suppress(BrokenPipeError):    # it died before reading its job: its exit code says how
+                self.process.stdin.write(job_input)
+            with contextlib.suppress(BrokenPipeError):
+                self.process.stdin.close()
+            _, wait_status, usage = os.wait4(self.process.pid, 0)
+            self.process.returncode = os.waitstatus_to_exitcode(wait_status)
+            result = self.result_path.read_bytes() if self.result_path.exists() else None
+            self.ended.put((self.position, ProcessOutcome(self.process.returncode, result,
+                                                          time.monotonic() - self.started, usage.ru_maxrss / 1024.0)))
+        except BaseException as exc:  # the launcher re-raises it: never leave it waiting for this job
+            self.ended.put((self.position, exc))
+
+    def stop(self) -> None:
+        """End the job's process (the sweep was interrupted) and wait for it."""
+        if self.process.returncode is None:
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(self.process.pid, signal.SIGTERM)
+        self.thread.join()
+
+
+def next_ended(ended: "queue.SimpleQueue[Any]") -> Any:
+    """The next ``(position, outcome)`` a job's thread puts. Waits in short slices: a Ctrl-C that another
+    thread takes (polars and jemalloc start their own) reaches the main thread only when it wakes."""
+    while True:
+        try:
+            return ended.get(timeout=0.2)
+        except queue.Empty:
             pass
-    _, wait_status, usage = os.wait4(process.pid, 0)
-    process.returncode = os.waitstatus_to_exitcode(wait_status)
-    result = result_path.read_bytes() if result_path.exists() else None
-    return ProcessOutcome(process.returncode, result, time.monotonic() - started, usage.ru_maxrss / 1024.0)
 
 
 class IsolatedLauncher(Launcher):
@@ -146,19 +175,27 @@ class IsolatedLauncher(Launcher):
         # pickled once for all jobs; each job's input adds its num and overrides
         shared = cloudpickle.dumps((self.hydra_context, self.config, self.task_function, Singleton.get_state()))
         returns: list[JobReturn | None] = [None] * len(job_overrides)
+        waiting = deque(range(len(job_overrides)))
+        running: dict[int, JobProcess] = {}
+        ended: queue.SimpleQueue[tuple[int, ProcessOutcome | BaseException]] = queue.SimpleQueue()
         with tempfile.TemporaryDirectory(prefix="hydra-isolated-") as results_dir:
-            pool = ThreadPoolExecutor(max_workers=at_a_time, thread_name_prefix="job-process")
             try:
-                futures: dict[Future[ProcessOutcome], int] = {}
-                for position, overrides in enumerate(job_overrides):
-                    job_input = pickle.dumps((list(sys.path), shared, initial_job_idx + position, list(overrides)))
-                    futures[pool.submit(run_job_process, job_input, Path(results_dir) / f"{position}.pkl")] = position
-                for future in as_completed(futures):
-                    position = futures[future]
-                    returns[position] = self._job_return(initial_job_idx + position, job_overrides[position],
-                                                         future.result())
-            finally:              # interrupted: start no further job, wait for the running ones
-                pool.shutdown(wait=True, cancel_futures=True)
+                while waiting or running:
+                    # jobs start only here, in the main thread: after a Ctrl-C (raised here) none does
+                    while waiting and len(running) < at_a_time:
+                        position = waiting.popleft()
+                        job_input = pickle.dumps((list(sys.path), shared, initial_job_idx + position,
+                                                  list(job_overrides[position])))
+                        running[position] = JobProcess(position, job_input, Path(results_dir) / f"{position}.pkl",
+                                                       ended)
+                    position, outcome = next_ended(ended)
+                    running.pop(position).thread.join()
+                    if isinstance(outcome, BaseException):
+                        raise outcome
+                    returns[position] = self._job_return(initial_job_idx + position, job_overrides[position], outcome)
+            finally:              # interrupted, or the launcher failed: end the jobs still running
+                for job in running.values():
+                    job.stop()
         assert all(isinstance(r, JobReturn) for r in returns)
         return returns  # type: ignore[return-value]
 

@@ -1,5 +1,6 @@
-"""One sweep job in a fresh interpreter: ``python -m hydra_plugins.isolated_launcher.job_process RESULT``
-reads the job from stdin and writes its pickled JobReturn to RESULT.
+"""One sweep job in a fresh interpreter: ``python -m hydra_plugins.isolated_launcher._job_process RESULT``
+reads the job from stdin and writes its pickled JobReturn to RESULT. (The leading ``_`` keeps Hydra's
+plugin scan, which imports every other module under hydra_plugins at each start, away from it.)
 
 A fresh interpreter, not a fork of the launcher: a fork would copy the parent's thread pools
 (polars, BLAS) in whatever state they were, which can deadlock the child. The job's arguments
@@ -11,8 +12,9 @@ from __future__ import annotations
 import os
 import pickle
 import sys
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 
 from hydra.core.hydra_config import HydraConfig
 from hydra.core.singleton import Singleton
