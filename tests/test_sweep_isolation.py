@@ -23,7 +23,7 @@ def test_a_killed_job_fails_alone_and_the_sweep_summary_lists_it(tmp_path):
     env = {**os.environ, "HYDRA_FULL_ERROR": "0", "PYTHONPATH": str(ROOT)}
     proc = subprocess.run(
         [sys.executable, "-m", "pipeline", "-m", f"paths.artifacts={tmp_path}", "mc.runs=2", "scenario.steps=20",
-         "record.enabled=false", "variants=[fsimm]", "filters.fsimm._target_=tests.faulty_filters.SelfKillingFSIMM",
+         "record.enabled=false", "variants=[fsimm]", "filters.fsimm._target_=tests.faulty_filters.SelfKillingFSIMM", "plugins.packages=[tests]",
          "+filters.fsimm.sigkill=false,true,false", f"hydra/launcher={LAUNCHER}", "hydra.launcher.n_jobs=2"],
         cwd=tmp_path, capture_output=True, text=True, timeout=120, env=env)
     assert proc.returncode == 1, proc.stderr[-3000:]      # the sweep returns, reporting its one failed job
