@@ -55,5 +55,5 @@ def test_a_failure_that_cannot_be_recorded_still_reports_the_job_error(tmp_path,
 
     blocked = tmp_path / "run"
     blocked.write_text("")                       # a file where the run folder should be: every write fails
-    _fail(RunContext(blocked, tmp_path, []), "x", OmegaConf.create({}), "the job's error", None)
+    _fail(RunContext(blocked, tmp_path, []), OmegaConf.create({"experiment_name": "x"}), "the job's error", None)
     assert "could not record the failure" in caplog.text
