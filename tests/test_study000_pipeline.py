@@ -246,9 +246,10 @@ def test_radar_rejects_bad_arguments_by_name(kwargs, message):
 
 # ---- the pipeline with the stub ----------------------------------------------------------------
 def compose_study(tmp_path: Path, *overrides: str, variants=("a", "b", "c")):
+    package = StubEstimator.__module__.split(".")[0]          # the stub's own package may be named (item 5)
     with initialize_config_dir(version_base="1.3", config_dir=str(CONF)):
         cfg = compose("config", overrides=["experiment=mie_los", f"paths.artifacts={tmp_path}",
-                                           "record.enabled=false", *overrides])
+                                           "record.enabled=false", f"plugins.packages=[{package}]", *overrides])
     target = f"{StubEstimator.__module__}.StubEstimator"
     with open_dict(cfg):
         cfg.filters = {v: {"_target_": target, "name": v.upper()} for v in variants}
