@@ -1,0 +1,183 @@
+"""A truth from a recorded flight: local ENU at a radar site, RTS-smoothed, resampled to the scan period.
+
+Why smoothing: ADS-B positions are quantised (CPR, ~5 m), jittered in time (OpenSky stamps the
+second it sampled a position) and altitudes come in 25 ft steps. Finite differences of them give
+velocities and accelerations far noisier than the aircraft's. The fixed-interval smoother
+(filters.smoothing) over a white-jerk constant-acceleration model on each ENU axis gives a
+trajectory whose position, velocity and acceleration agree with each other (the Monte Carlo
+measurements are drawn from this truth, so the tracking errors are exact for it). How far it is
+from the raw positions is reported per axis (``Flight.smoothing_residual``): compare it with the
+radar's noise before drawing conclusions at that level.
+
+Maneuver labels per scan, from the truth (bits, so both may hold):
+
+- ``turn``: horizontal acceleration normal to the horizontal velocity above ``turn_threshold``
+  (default 1.5 m/s^2, about 0.15 g: a bank of ~9 deg; a standard-rate turn at 250 kt is ~6.7 m/s^2);
+  not evaluated below 5 m/s of ground speed (no direction to turn from);
+- ``climb_descent``: |vertical velocity| above ``climb_threshold`` (default 2.5 m/s, ~500 ft/min);
+  "horizontal" and "vertical" are those of the aircraft's own position (``local_up``), not the site's;
+- ``straight``: neither (speed changes along the track count as straight).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from datetime import datetime, timezone
+from typing import Mapping
+
+import numpy as np
+import pymap3d
+
+from filters.smoothing import smooth_constant_acceleration
+from pipeline.studies.adsb.reading import CleanFlight, load_flight
+
+STATE_NAMES = ("x", "y", "z", "vx", "vy", "vz", "ax", "ay", "az")   # ENU east, north, up; study 000's layout
+MANEUVER_NAMES = ("straight", "turn", "climb_descent", "turn_climb_descent")
+TURN, CLIMB_DESCENT = 1, 2                                          # bits of the maneuver label
+MIN_TURN_SPEED = 5.0                                                # m/s
+
+
+@dataclass(frozen=True)
+class Flight:
+    """One recorded flight as a truth over a window of one segment.
+
+    time (K,) s from the window start, scan_period apart; state (K, 9) in STATE_NAMES order, ENU at
+    the site [m, m/s, m/s^2]; maneuver (K,) int8 index into maneuver_names; smoothing_residual (3,)
+    RMS of smoothed minus raw position per ENU axis over the window's raw points [m];
+    measured_time (M,), measured_position (M, 3): those raw points (ENU; up NaN where the altitude
+    was stale); cleaning: what was dropped;
+    provenance: file, aircraft, window (UTC), site.
+    """
+
+    time: np.ndarray
+    state: np.ndarray
+    maneuver: np.ndarray
+    smoothing_residual: np.ndarray
+    measured_time: np.ndarray
+    measured_position: np.ndarray
+    cleaning: CleanFlight
+    provenance: Mapping[str, str]
+    state_names: tuple[str, ...] = STATE_NAMES
+    maneuver_names: tuple[str, ...] = MANEUVER_NAMES
+
+    def maneuver_shares(self) -> dict[str, float]:
+        """Share of scans per maneuver label."""
+        counts = np.bincount(self.maneuver, minlength=len(self.maneuver_names))
+        return {name: float(c) / len(self.maneuver) for name, c in zip(self.maneuver_names, counts)}
+
+    def describe(self) -> str:
+        """One paragraph: the cleaning, the window, the residual, the maneuver shares."""
+        shares = ", ".join(f"{k} {v:.0%}" for k, v in self.maneuver_shares().items())
+        residual = ", ".join(f"{a} {r:.1f}" for a, r in zip("ENU", self.smoothing_residual))
+        return (f"{self.cleaning.describe()}. Window {self.provenance['window']}: {len(self.time)} scans; "
+                f"smoothing residual RMS [m] {residual}; maneuvers {shares}.")
+
+
+def geodetic_to_enu(latitude: np.ndarray, longitude: np.ndarray, height: np.ndarray,
+                    site: tuple[float, float, float]) -> np.ndarray:
+    """(N, 3) east, north, up [m] at ``site`` (latitude, longitude [deg], height [m]) of WGS-84 points."""
+    return np.stack(pymap3d.geodetic2enu(latitude, longitude, height, *site), axis=-1)
+
+
+def local_up(position: np.ndarray, site: tuple[float, float, float]) -> np.ndarray:
+    """(K, 3) unit vectors of the local vertical at ENU ``position`` (K, 3), in the site's ENU axes.
+
+    Why: the site's "up" is not the aircraft's. 100 km from the site the two differ by 0.9 deg, so
+    a level flight at 250 m/s shows ~4 m/s of ENU vz; vertical rate and the horizontal plane of a
+    turn are taken at the aircraft."""
+    lat, lon, _ = pymap3d.enu2geodetic(position[:, 0], position[:, 1], position[:, 2], *site)
+    lat, lon = np.radians(lat), np.radians(lon)
+    up_ecef = (np.cos(lat) * np.cos(lon), np.cos(lat) * np.sin(lon), np.sin(lat))
+    return np.stack(pymap3d.ecef2enuv(*up_ecef, site[0], site[1]), axis=-1)
+
+
+def maneuver_labels(state: np.ndarray, up: np.ndarray, turn_threshold: float, climb_threshold: float) -> np.ndarray:
+    """(K,) int8 labels (module doc) from states (K, 9) in STATE_NAMES order and the local vertical ``up`` (K, 3)."""
+    velocity, acceleration = state[:, 3:6], state[:, 6:9]
+    vertical_rate = np.sum(velocity * up, axis=1)
+    horizontal_velocity = velocity - vertical_rate[:, None] * up
+    horizontal_acceleration = acceleration - np.sum(acceleration * up, axis=1)[:, None] * up
+    speed = np.linalg.norm(horizontal_velocity, axis=1)
+    normal = np.linalg.norm(np.cross(horizontal_velocity, horizontal_acceleration), axis=1)
+    turn = (speed >= MIN_TURN_SPEED) & (normal > turn_threshold * np.maximum(speed, MIN_TURN_SPEED))
+    return (TURN * turn + CLIMB_DESCENT * (np.abs(vertical_rate) > climb_threshold)).astype(np.int8)
+
+
+def _window(cleaned: CleanFlight, start: float, duration: float | None) -> tuple[int, float, float]:
+    """(segment index, window start, window end) in s from the first kept point; ValueError naming the key
+    when the window is not inside one segment."""
+    spans = cleaned.segment_times()
+    listing = ", ".join(f"[{a:g}, {b:g}]" for a, b in spans[:12]) + (" ..." if len(spans) > 12 else "")
+    where = (f"{cleaned.source} has {len(spans)} segment(s) between gaps of more than {cleaned.max_gap:g} s, "
+             f"at [start, end] s from its first kept point: {listing}")
+    inside = [i for i, (a, b) in enumerate(spans) if a <= start <= b]
+    if not inside:
+        raise ValueError(f"start: {start:g} s is not inside a segment of the flight; {where}")
+    segment = inside[0]
+    seg_start, seg_end = spans[segment]
+    end = seg_end if duration is None else start + duration
+    if end > seg_end + 1e-9:
+        following = [a for a, _ in spans[segment + 1:] if a <= end]
+        crossing = (f"spans the gap between {seg_end:g} s and {spans[segment + 1][0]:g} s" if following
+                    else f"runs past the end of the flight's segment at {seg_end:g} s")
+        raise ValueError(f"duration: the window [{start:g}, {end:g}] s {crossing}; a truth needs positions "
+                         f"throughout its window. Choose start and duration within one segment: {where}")
+    return segment, start, end
+
+
+def build_flight(flight: str, scan_period: float = 1.0, start: float = 0.0, duration: float | None = None,
+                 site_latitude: float | None = None, site_longitude: float | None = None, site_height: float = 0.0,
+                 horizontal_noise_std: float = 25.0, vertical_noise_std: float = 5.0, jerk_psd: float = 1.0,
+                 max_gap: float = 20.0, max_speed: float = 600.0, max_vertical_speed: float = 150.0,
+                 turn_threshold: float = 1.5, climb_threshold: float = 2.5) -> Flight:
+    """Read, clean and smooth ``flight`` into a truth at ``scan_period`` over [start, start + duration] s
+    from its first kept point (duration None: to the end of start's segment).
+
+    The site defaults to the median latitude and longitude of the window's points at height 0 (the
+    flight may then pass overhead; give a site for a radar geometry). Noise stds are those the
+    smoother assumes for one ADS-B position (east and north, up) [m]; ``jerk_psd`` [m^2/s^5] sets how
+    fast it lets the acceleration change. The whole segment is smoothed, so the window's first and
+    last scans are smoothed with data on both sides like the others.
+    """
+    cleaned = load_flight(flight, max_gap, max_speed, max_vertical_speed)
+    segment, t_start, t_end = _window(cleaned, start, duration)
+    steps = int(np.floor((t_end - t_start) / scan_period + 1e-9))
+    if steps < 2:
+        raise ValueError(f"duration: the window [{t_start:g}, {t_end:g}] s holds {steps + 1} scan(s) of "
+                         f"scan_period {scan_period:g} s; a truth needs at least 3")
+    first, stop = cleaned.segments[segment]
+    t = cleaned.time[first:stop] - cleaned.time[0]
+    in_window = (t >= t_start - 1e-9) & (t <= t_end + 1e-9)
+    lat, lon, alt = cleaned.latitude[first:stop], cleaned.longitude[first:stop], cleaned.altitude[first:stop]
+    site = (float(np.median(lat[in_window])) if site_latitude is None else float(site_latitude),
+            float(np.median(lon[in_window])) if site_longitude is None else float(site_longitude),
+            float(site_height))
+    enu = geodetic_to_enu(lat, lon, alt, site)
+    samples = enu.copy()
+    fresh = cleaned.fresh_altitude[first:stop]
+    if fresh.any():                                                        # a stale altitude is no sample of up
+        samples[~fresh, 2] = np.nan
+    scan_time = t_start + scan_period * np.arange(steps + 1)
+    # the scans are inserted as steps without data; a scan at a sample's time comes after it (stable sort)
+    all_time = np.concatenate([t, scan_time])
+    order = np.argsort(all_time, kind="stable")
+    positions = np.concatenate([samples, np.full((scan_time.size, 3), np.nan)])[order]
+    noise = np.array([horizontal_noise_std, horizontal_noise_std, vertical_noise_std])
+    smoothed = smooth_constant_acceleration(all_time[order], positions, noise, jerk_psd)
+    at = np.empty(order.size, int)
+    at[order] = np.arange(order.size)
+    at_samples, at_scans = at[:t.size], at[t.size:]
+    state = smoothed[at_scans].transpose(0, 2, 1).reshape(-1, 9)          # (K, [p, v, a] x [E, N, U])
+    residual = smoothed[at_samples[in_window], :, 0] - samples[in_window]
+    absolute_start = cleaned.time[0] + t_start
+    provenance = {
+        "source": cleaned.source, "icao24": cleaned.icao24, "callsign": cleaned.callsign,
+        "window": f"[{t_start:g}, {t_end:g}] s of segment {segment} (UTC "
+                  f"{datetime.fromtimestamp(absolute_start, timezone.utc):%Y-%m-%d %H:%M:%S} + {t_end - t_start:g} s)",
+        "site": f"latitude {site[0]:.6f} deg, longitude {site[1]:.6f} deg, height {site[2]:g} m (WGS-84)",
+    }
+    return Flight(time=scan_time - t_start, state=state,
+                  maneuver=maneuver_labels(state, local_up(state[:, :3], site), turn_threshold, climb_threshold),
+                  smoothing_residual=np.sqrt(np.nanmean(residual ** 2, axis=0)),
+                  measured_time=t[in_window] - t_start, measured_position=samples[in_window],
+                  cleaning=cleaned, provenance=provenance)
