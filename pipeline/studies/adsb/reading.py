@@ -23,9 +23,9 @@ Cleaning, in this order, each dropped point counted under its reason (``CleanFli
 
 An altitude can be stale while the position is new (the zero_gravity sample holds its altitude for
 10-15 s during the parabolas, then jumps 400 m): a repeated altitude is marked stale
-(``CleanFlight.fresh_altitude`` False, counted as ``stale_altitude``) when the reported vertical rate,
-integrated since the value first appeared, says it should have changed by more than
-``STALE_ALTITUDE_CHANGE`` (two 25 ft quanta). Of the other altitudes, those that cannot be reached
+(``CleanFlight.fresh_altitude`` False, counted as ``stale_altitude``) when the slowest vertical rate
+reported since the value first appeared, times the time since, says it should have changed by more
+than ``STALE_ALTITUDE_CHANGE`` (two 25 ft quanta). Of the other altitudes, those that cannot be reached
 from the previous one without a vertical speed above ``max_vertical_speed`` (default 150 m/s,
 30 000 ft/min, beyond any climb or dive in these samples) are glitches (``altitude_jump``), chosen
 like position jumps. Such points keep their horizontal position; only the altitude is not used.
@@ -270,13 +270,15 @@ def _jump_free(position: np.ndarray, time: np.ndarray, max_speed: float) -> np.n
 
 
 def stale_altitudes(time: np.ndarray, altitude: np.ndarray, vertical_rate: np.ndarray) -> np.ndarray:
-    """(N,) True where an altitude repeats the previous one although the vertical rate, integrated since
-    that value first appeared, says it changed by more than STALE_ALTITUDE_CHANGE (module doc)."""
+    """(N,) True where an altitude repeats the previous one although the slowest vertical rate reported
+    since that value first appeared, times the time since, says it changed by more than
+    STALE_ALTITUDE_CHANGE (module doc). The slowest rate: a cruise whose rate flickers by one 64 ft/min
+    quantum, or a level-off whose rate decays to 0, keeps its altitude; a parabola at 100 m/s does not."""
     changed = np.concatenate([[True], np.diff(altitude) != 0])
     first_of_value = np.flatnonzero(changed)[np.cumsum(changed) - 1]
-    rate = np.nan_to_num(vertical_rate)
-    climbed = np.concatenate([[0.0], np.cumsum(0.5 * (rate[1:] + rate[:-1]) * np.diff(time))])
-    return ~changed & (np.abs(climbed - climbed[first_of_value]) > STALE_ALTITUDE_CHANGE)
+    rates = pl.DataFrame({"value": first_of_value, "rate": np.abs(np.nan_to_num(vertical_rate))})
+    slowest = rates.select(pl.col("rate").cum_min().over("value"))["rate"].to_numpy()
+    return ~changed & (slowest * (time - time[first_of_value]) > STALE_ALTITUDE_CHANGE)
 
 
 def clean_flight(frame: pl.DataFrame, source: str, max_gap: float = 20.0, max_speed: float = 600.0,
