@@ -98,7 +98,7 @@ def test_smoother_recovers_a_constant_turn_from_quantised_noisy_positions():
 def test_flight_from_a_synthetic_turn_file_gives_the_turn_in_si_units(tmp_path):
     """End to end through the file: ft, ms, degrees in; ENU metres, the turn and its label out."""
     t = np.arange(0.0, 241.0)
-    p, v, a = _constant_turn(t)
+    p = _constant_turn(t)[0]
     table = _frame(t, p[:, 0], p[:, 1], np.round(p[:, 2] / (25 * FOOT)) * 25 * FOOT,
                    groundspeed=np.full(t.size, 150.0 / (1852 / 3600)), vertical_rate=np.full(t.size, 5.0 / FOOT * 60))
     path = tmp_path / "turn.csv"

@@ -114,7 +114,7 @@ def _window(cleaned: CleanFlight, start: float, duration: float | None) -> tuple
     if not inside:
         raise ValueError(f"start: {start:g} s is not inside a segment of the flight; {where}")
     segment = inside[0]
-    seg_start, seg_end = spans[segment]
+    seg_end = spans[segment][1]
     end = seg_end if duration is None else start + duration
     if end > seg_end + 1e-9:
         following = [a for a, _ in spans[segment + 1:] if a <= end]
