@@ -41,7 +41,11 @@ if TYPE_CHECKING:
 
 
 class Scenario(Protocol):
-    """A truth generator: every Monte Carlo run at once, run r's randomness from (seed, "scenario", r)."""
+    """A truth generator: every Monte Carlo run at once, run r's randomness from (seed, "scenario", r).
+
+    A scenario that reads data files (a recorded flight) also offers ``data_fingerprint() -> str``, a
+    hash of those files, which joins the scenario stage's cache key (pipeline.stages): the config
+    names a file, the fingerprint says which bytes it held."""
 
     def generate(self, runs: int, seed: int) -> "Truth": ...
 

@@ -44,6 +44,12 @@ class Stage:
         return Path(f"{self.output}.parquet")
 
 
+def _data_fingerprint(scenario: Any) -> dict[str, str]:
+    """``{"data": ...}`` for a scenario with ``data_fingerprint()`` (a hash of the files it reads), else {}."""
+    fingerprint = getattr(scenario, "data_fingerprint", None)
+    return {"data": str(fingerprint())} if callable(fingerprint) else {}
+
+
 def declare(cfg: Any, resolved: Mapping[str, Any], prepared: Any, fault_checks: Any
             ) -> tuple[list[Stage], Callable[[Any, Any], Any]]:
     """The experiment's stages, in order, and the filters' view ``track_input(truth, detections)``
@@ -62,7 +68,9 @@ def declare(cfg: Any, resolved: Mapping[str, Any], prepared: Any, fault_checks: 
         return made[0][1]
 
     stages = [
-        Stage("scenario", "truth", "truth", (), {"scenario": resolved["scenario"], "runs": runs, "seed": seed},
+        # a scenario read from a data file (a recorded flight) names its bytes: an edited file recomputes
+        Stage("scenario", "truth", "truth", (), {"scenario": resolved["scenario"], "runs": runs, "seed": seed,
+                                                  **_data_fingerprint(scenario)},
               ("pipeline.stages", "pipeline.schemas", "pipeline.seeding"), lambda: scenario.generate(runs, seed),
               lambda truth, _: schemas.truth_to_frame(truth), schemas.truth_from_frame, lambda _: f"{runs} runs"),
         Stage("measure", "detections", "detections", ("truth",), {"sensors": resolved["sensors"], "seed": seed},

@@ -7,11 +7,15 @@ drawn later: the flight is the same for all of them, so ``generate`` ignores the
 
 from __future__ import annotations
 
+import hashlib
+from pathlib import Path
+
 import numpy as np
 
 from pipeline.checks import finite, non_negative, positive
 from pipeline.data import Truth
 from pipeline.studies.adsb.flight import MANEUVER_NAMES, STATE_NAMES, Flight, build_flight
+from pipeline.studies.adsb.reading import find_flight_file
 
 
 class RecordedFlight:
@@ -69,6 +73,12 @@ class RecordedFlight:
             max_vertical_speed=float(max_vertical_speed), turn_threshold=float(turn_threshold),
             climb_threshold=float(climb_threshold))
         self.dt = float(scan_period)
+        self.source = find_flight_file(flight)
+
+    def data_fingerprint(self) -> str:
+        """SHA-256 of the flight's file: part of the scenario stage's cache key (pipeline.stages), so
+        an edited or replaced file under the same name is never served from the cache."""
+        return hashlib.sha256(Path(self.source).read_bytes()).hexdigest()
 
     def generate(self, runs: int, seed: int) -> Truth:
         """The flight for every run: labels acceleration (R, K, 1, 3) and maneuver (R, K, 1) int8."""

@@ -1,0 +1,97 @@
+"""The ADS-B study: recorded flights (pipeline.studies.adsb.scenario.RecordedFlight) seen by study
+000's 3-D radar, tracked by every filter family that takes its range/azimuth/elevation measurements.
+
+Beyond the shared per-step metrics (position, velocity, acceleration RMSE, NEES, NIS):
+
+- ``nees_position_velocity`` with its 95 % band: the NEES of the position-velocity block (6 dof),
+  the one block every family estimates (a CV filter has no acceleration, so its full-state NEES is
+  undefined and would drop it from the comparison);
+
+and in the summary, per variant:
+
+- ``position_rmse_by_maneuver`` / ``velocity_rmse_by_maneuver`` with ``component`` the maneuver
+  class of the truth (straight, turn, climb_descent, turn_climb_descent): the RMS error over all runs
+  and over the scans of that class (scans from ``first_scan`` on, when every filter has started);
+- ``nees_position_velocity_in_band``: the share of scans whose run-averaged 6-dof NEES lies inside
+  its 95 % band (about 0.95 for a consistent filter);
+- ``scans_by_maneuver`` (component = class): how many scans of the window have that label.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Mapping
+
+import numpy as np
+
+from pipeline.evaluate import consistency_metrics
+from pipeline.metrics import BAND, Metric, nees, register, unit_of
+from pipeline.studies.adsb.flight import MANEUVER_NAMES
+from pipeline.track import SingleTargetStudy
+
+POSITION_VELOCITY = ("x", "y", "z", "vx", "vy", "vz")
+
+register(
+    Metric("nees_position_velocity", "1 (chi2 dof = 6)", "-", label="NEES p,v", dof=6),
+    Metric("nees_position_velocity_lower", BAND, "-"), Metric("nees_position_velocity_upper", BAND, "-"),
+    Metric("nees_position_velocity_in_band", "fraction of scans", "fraction", label="in band", decimals=2),
+    *[Metric(f"position_rmse_{name}", "m", quantity="position_rmse_by_maneuver", component=name,
+             label=f"pos RMSE {name.replace('_', '/')}") for name in MANEUVER_NAMES],
+    *[Metric(f"velocity_rmse_{name}", "m/s", quantity="velocity_rmse_by_maneuver", component=name)
+      for name in MANEUVER_NAMES],
+    *[Metric(f"scans_{name}", "scans", quantity="scans_by_maneuver", component=name) for name in MANEUVER_NAMES],
+)
+
+
+class FlightStudy(SingleTargetStudy):
+    """SingleTargetStudy with the maneuver-class and position-velocity consistency metrics above.
+
+    Parameters: first_scan, the first scan every family has an estimate at (two-point starts: 1;
+    the MIE filters' input estimate: 2) [scans]."""
+
+    def __init__(self, first_scan: int = 2) -> None:
+        super().__init__()
+        if isinstance(first_scan, bool) or not isinstance(first_scan, int) or first_scan < 0:
+            raise ValueError(f"first_scan: {first_scan!r} must be an integer >= 0")
+        self.first_scan = first_scan
+
+    def per_step_metrics(self, truth, estimate, sensor) -> dict[str, np.ndarray]:
+        out = super().per_step_metrics(truth, estimate, sensor)
+        index = [truth.state_names.index(n) for n in POSITION_VELOCITY]
+        error = estimate.state[..., index] - truth.state[:, :, 0, index]
+        covariance = estimate.covariance[..., index, :][..., :, index]
+        out.update(consistency_metrics("nees_position_velocity", nees(error, covariance), len(index)))
+        return out
+
+    def extra_summary(self, truth, estimates: Mapping[str, Any], display: Mapping[str, str], runs: int,
+                      reference: str | None, sensor,
+                      per_variant: Mapping[str, tuple[str, dict[str, np.ndarray]]]) -> list[dict]:
+        labels = np.asarray(truth.labels["maneuver"])[0, :, 0]
+        counted = np.arange(labels.size) >= self.first_scan
+        names = truth.state_names
+        position = [names.index(n) for n in ("x", "y", "z")]
+        velocity = [names.index(n) for n in ("vx", "vy", "vz")]
+        rows: list[dict] = []
+
+        def add(key: str, series: str, value: float | None) -> None:
+            rows.append({"variant": display[key], "variant_key": key, "series": series, "window": None,
+                         "value": None if value is None or not np.isfinite(value) else float(value),
+                         "unit": unit_of(series), "n_runs": runs})
+
+        for key, estimate in estimates.items():
+            squared = {
+                "position": np.sum((estimate.state[..., position] - truth.state[:, :, 0, position]) ** 2, axis=-1),
+                "velocity": np.sum((estimate.state[..., velocity] - truth.state[:, :, 0, velocity]) ** 2, axis=-1),
+            }
+            for code, name in enumerate(MANEUVER_NAMES):
+                scans = counted & (labels == code)
+                add(key, f"scans_{name}", float(scans.sum()))
+                for quantity, values in squared.items():
+                    chosen = values[:, scans]
+                    finite = chosen[np.isfinite(chosen)]
+                    add(key, f"{quantity}_rmse_{name}", float(np.sqrt(finite.mean())) if finite.size else None)
+            metrics = per_variant[key][1]
+            mean, lower, upper = (metrics[f"nees_position_velocity{s}"][counted] for s in ("", "_lower", "_upper"))
+            valid = np.isfinite(mean)
+            inside = (mean >= lower) & (mean <= upper)
+            add(key, "nees_position_velocity_in_band", float(inside[valid].mean()) if valid.any() else None)
+        return rows

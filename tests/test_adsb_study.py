@@ -1,0 +1,81 @@
+"""The ADS-B study (issue 17) at reduced size on the shipped real flights: every flight's experiment
+runs through the framework contract, the filters beat the raw radar, the maneuver-class metrics add
+up, and a flight file's bytes are part of the cache key."""
+
+from __future__ import annotations
+
+import shutil
+
+import numpy as np
+import polars as pl
+import pytest
+
+from pipeline.errors import ConfigError
+from pipeline.studies.adsb.flight import MANEUVER_NAMES
+from tests.test_pipeline import run_in_process
+
+FLIGHTS = ("adsb_jet", "adsb_zero_gravity", "adsb_calibration", "adsb_helicopter")
+
+
+def rows(summary: pl.DataFrame, series: str) -> dict[str, float]:
+    chosen = summary.filter(pl.col("series") == series)
+    return dict(zip(chosen["variant_key"].to_list(), chosen["value"].to_list()))
+
+
+@pytest.mark.parametrize("experiment", FLIGHTS)
+def test_every_flight_runs_and_the_filters_beat_the_raw_radar(tmp_path, experiment):
+    out, ctx = run_in_process(tmp_path, experiment, f"experiment={experiment}", "mc.runs=3", "scenario.duration=120")
+    summary = out.summary
+    truth = pl.read_parquet(ctx.run_dir / "truth.parquet")
+    detections = pl.read_parquet(ctx.run_dir / "detections.parquet")
+    # the raw radar's position error, converted to Cartesian (study 000's sensor at the ENU origin)
+    from pipeline.studies.mie_los.sensor import cartesian
+    z = np.stack(detections.sort("run", "step")["z"].to_numpy())
+    x = np.stack(truth.sort("run", "step")["x"].to_numpy())[:, :3]
+    raw = float(np.sqrt(np.mean(np.sum((cartesian(z) - np.tile(x, (3, 1))[: len(z)]) ** 2, axis=-1))))
+    overall = dict(zip(*summary.filter((pl.col("series") == "position_rmse") & (pl.col("window") == "all"))
+                       .select("variant_key", "value").to_dict(as_series=False).values()))
+    assert overall["kf_cv"] < 0.8 * raw, f"{experiment}: KF-CV {overall['kf_cv']:.1f} m vs the raw radar {raw:.1f} m"
+    # each maneuver class's scans add up to the counted scans (2..K-1), and each class that occurs has an RMSE
+    scans = {name: rows(summary, f"scans_{name}")["kf_cv"] for name in MANEUVER_NAMES}
+    assert sum(scans.values()) == truth.filter(pl.col("run") == 0).height - 2
+    for name, count in scans.items():
+        value = rows(summary, f"position_rmse_{name}")["kf_cv"]
+        assert (value is not None and np.isfinite(value)) == (count > 0), (name, count, value)
+    band = rows(summary, "nees_position_velocity_in_band")
+    assert set(band) == {"kf_cv", "kf_singer", "mie_a", "mie_b", "mie_c"} and all(0 <= v <= 1 for v in band.values())
+
+
+def test_the_flight_file_bytes_are_in_the_cache_key(tmp_path, caplog):
+    """An edited flight file under the same name must be read again, never served from the cache."""
+    caplog.set_level("INFO", logger="pipeline")
+    from pipeline.studies.adsb.reading import find_flight_file
+    flight = tmp_path / "flight.parquet"
+    shutil.copy(find_flight_file("rega_sg"), flight)
+    overrides = ("experiment=adsb_helicopter", f"scenario.flight={flight}", "scenario.duration=60", "mc.runs=2",
+                 "variants=[kf_cv]")
+    run_in_process(tmp_path, "a", *overrides)
+    caplog.clear()
+    run_in_process(tmp_path, "b", *overrides)
+    assert "[scenario] reused cached" in caplog.text
+    table = pl.read_parquet(flight)
+    table.with_columns(pl.col("latitude") + 1e-4).write_parquet(flight)     # the same name, other positions
+    caplog.clear()
+    run_in_process(tmp_path, "c", *overrides)
+    assert "[scenario] computed" in caplog.text and "[scenario] reused" not in caplog.text
+
+
+def test_a_window_over_a_gap_is_refused_naming_the_segments(tmp_path):
+    with pytest.raises(ConfigError, match=r"scenario.*spans the gap"):
+        run_in_process(tmp_path, "gap", "experiment=adsb_helicopter", "scenario.start=0", "scenario.duration=600",
+                       "mc.runs=2")
+    assert not (tmp_path / "cache").exists()
+
+
+def test_a_noisy_recording_is_cleaned_and_counted():
+    """traffic's noisy/ samples: spoofed positions and time-stamp errors are dropped and counted."""
+    from pipeline.studies.adsb.reading import load_flight
+    spoofed = load_flight("noisy_spoofing")
+    assert spoofed.dropped["jump"] > 100 and np.all(np.diff(spoofed.time) > 0)
+    shifted = load_flight("noisy_time_issue")
+    assert shifted.dropped["stale_position"] > 0 and np.all(np.diff(shifted.time) > 0)
