@@ -102,30 +102,12 @@ class KalmanTracker:
     @staticmethod
     def _cartesian(m: MeasurementSeries) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
         """(positions (R, K, d), their noise covariance (R, K, d, d), detected (R, K), scan period)."""
-        z = np.asarray(m.z, dtype=float)
-        R, K, d = z.shape
-        if K < 3:
+        if m.z.shape[1] < 3:
             raise ValueError("measurements: the two-point start needs at least 3 scans")
         dts = np.diff(m.time)
         if not np.allclose(dts, dts[0]):
             raise ValueError("measurements.time: the KalmanTracker needs a constant scan period")
-        noise = np.asarray(m.noise_covariance, dtype=float)
-        noise = np.broadcast_to(noise, (R, K, d, d)) if noise.ndim == 2 else noise
-        detected = np.asarray(m.detected, dtype=bool)
-        if not detected[:, :2].all():
-            raise ValueError("measurements: the two-point start needs detections at the first two scans of every run")
-        if d == 3:
-            # range, azimuth, elevation relative to the sensor: converted measurements (notes 2.1)
-            variances = np.diagonal(noise, axis1=-2, axis2=-1)
-            converted = polar_to_cartesian(np.where(detected[..., None], z, 1.0))
-            offset = np.zeros(3) if m.sensor_position is None else np.asarray(m.sensor_position, dtype=float)
-            positions = np.where(detected[..., None], converted + offset, np.nan)
-            noise = converted_covariance(np.where(detected[..., None], z, 1.0), variances)
-            return positions, noise, detected, float(dts[0])
-        if d != 2:
-            raise ValueError(f"measurements.z: {d} values per scan; the KalmanTracker takes 2 (x, y) or 3 "
-                             f"(range, azimuth, elevation)")
-        return z, noise, detected, float(dts[0])
+        return (*cartesian_measurements(m), float(dts[0]))
 
     def _run_cartesian(self, z, noise, detected, dt):
         R, K, d = z.shape
@@ -180,6 +162,32 @@ class KalmanTracker:
             states[:, k], covariances[:, k] = x, P
         dof = np.where(reports.active, 2.0, 1.0)[None, :] * np.isfinite(nis)
         return states, covariances, names, {"nis": nis, "nis_dof": dof}
+
+
+def cartesian_measurements(m: MeasurementSeries) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A series' detections as Cartesian positions (R, K, d) [m] with their noise covariance
+    (R, K, d, d) and ``detected`` (R, K): x, y as given; range, azimuth, elevation converted,
+    z_c = polar_to_cartesian(z) + the sensor's position with R_c = J R_p J' at the measured point
+    (filters.coordinates, notes 2.1 of study 000). NaN positions where not detected. Refuses a series
+    whose first two scans are not all detected (the two-point start needs them)."""
+    z = np.asarray(m.z, dtype=float)
+    R, K, d = z.shape
+    noise = np.asarray(m.noise_covariance, dtype=float)
+    noise = np.broadcast_to(noise, (R, K, d, d)) if noise.ndim == 2 else noise
+    detected = np.asarray(m.detected, dtype=bool)
+    if not detected[:, :2].all():
+        raise ValueError("measurements: the two-point start needs detections at the first two scans of every run")
+    if d == 3:
+        variances = np.diagonal(noise, axis1=-2, axis2=-1)
+        converted = polar_to_cartesian(np.where(detected[..., None], z, 1.0))
+        offset = np.zeros(3) if m.sensor_position is None else np.asarray(m.sensor_position, dtype=float)
+        positions = np.where(detected[..., None], converted + offset, np.nan)
+        noise = converted_covariance(np.where(detected[..., None], z, 1.0), variances)
+        return positions, noise, detected
+    if d != 2:
+        raise ValueError(f"measurements.z: {d} values per scan; a Cartesian tracker takes 2 (x, y) or 3 "
+                         f"(range, azimuth, elevation)")
+    return z, noise, detected
 
 
 def to_layout(state: np.ndarray, covariance: np.ndarray, names: tuple[str, ...], wanted: tuple[str, ...]

@@ -166,7 +166,8 @@ def _events(active: np.ndarray, candidate: np.ndarray, names: Sequence[str]) -> 
 def write_recording(path: Path, *, experiment: str, truth: Truth, detections: Detections,
                     estimates: Mapping[str, TrackEstimate], display_names: Mapping[str, str],
                     metrics: "pl.DataFrame | None", record_runs: Sequence[int],
-                    model_names: Sequence[str] | None = None, group_names: Sequence[str] | None = None,
+                    model_names: Sequence[str] | Mapping[str, Sequence[str] | None] | None = None,
+                    group_names: Sequence[str] | None = None,
                     config_text: str = "", description: str = "",
                     sensor_position: Sequence[float] = (0.0, 0.0, 0.0)) -> None:
     """Write ``path`` (an ``.rrd`` with its default blueprint) for the runs in ``record_runs``.
@@ -177,6 +178,8 @@ def write_recording(path: Path, *, experiment: str, truth: Truth, detections: De
 
     A truth with a ``z`` state is drawn in 3-D (see the module docstring); ``sensor_position`` is
     then where the radar sits (polar detections are relative to it). 2-D recordings ignore it.
+    ``model_names`` labels the mode probabilities: one list for every variant, or a list (None:
+    m1, m2, ...) per variant key, for variants whose IMMs run different model sets.
     """
     path = Path(path)
     R = truth.runs
@@ -285,7 +288,8 @@ def write_recording(path: Path, *, experiment: str, truth: Truth, detections: De
                     rec.send_columns(f"{base}/covariance", indexes=times(est.time[steps], steps),
                                      columns=rr.LineStrips2D.columns(strips=covariance_ellipses(pos[good], P[good])))
 
-                _log_variant_run(rr, rec, times, key, r, est, model_names, group_names)
+                names = model_names.get(key) if isinstance(model_names, Mapping) else model_names
+                _log_variant_run(rr, rec, times, key, r, est, names, group_names)
 
         log_metric_series(rr, rec, times, metric_series)
         log_config(rr, rec, experiment, description, config_text, record_runs, R)

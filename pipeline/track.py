@@ -37,7 +37,8 @@ class SingleTargetStudy(Study):
 
     Every experiment runs through a ``pipeline.contract.Study``; the bias, sonar and sonobuoy
     studies name theirs with a ``study`` node, the others get this one. ``model_names`` /
-    ``group_names`` label the IMMs' modes in the recording; ``bound`` (the config's ``bound`` node)
+    ``group_names`` label the IMMs' modes in the recording (a filter with a ``mode_names``
+    attribute is labelled by its own); ``bound`` (the config's ``bound`` node)
     adds the PCRLB metrics ``position_bound`` and ``position_rmse_over_bound``.
     """
 
@@ -73,8 +74,11 @@ class SingleTargetStudy(Study):
         # recording where it sits
         where = getattr(inputs.sensor, "position", None)
         located = {} if where is None else {"sensor_position": [float(v) for v in where]}
-        write_recording(path, model_names=self.model_names, group_names=self.group_names, **inputs.common(),
-                        **located)
+        # a filter that names its own modes (filters.turn.CVCTIMM: CV, CT) is labelled by them; the
+        # study's model set labels the IMMs built on it
+        names = {key: getattr(inputs.estimators.get(key), "mode_names", None) or self.model_names
+                 for key in inputs.estimates}
+        write_recording(path, model_names=names, group_names=self.group_names, **inputs.common(), **located)
 
 
 # ---- the track stage's compute and codec (part of its cache key: pipeline.fingerprint) ------------
