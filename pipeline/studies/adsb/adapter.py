@@ -14,7 +14,10 @@ and in the summary, per variant:
   and over the scans of that class (scans from ``first_scan`` on, when every filter has started);
 - ``nees_position_velocity_in_band``: the share of scans whose run-averaged 6-dof NEES lies inside
   its 95 % band (about 0.95 for a consistent filter);
-- ``scans_by_maneuver`` (component = class): how many scans of the window have that label.
+- ``scans_by_maneuver`` (component = class): how many scans of the window have that label;
+- ``radar_position_rmse``: the raw radar's RMS position error at the true positions,
+  sqrt(mean trace(J R_p J')) with J the polar-to-Cartesian Jacobian (first order): what a filter must
+  beat to be worth running (the same for every variant).
 """
 
 from __future__ import annotations
@@ -39,7 +42,19 @@ register(
     *[Metric(f"velocity_rmse_{name}", "m/s", quantity="velocity_rmse_by_maneuver", component=name)
       for name in MANEUVER_NAMES],
     *[Metric(f"scans_{name}", "scans", quantity="scans_by_maneuver", component=name) for name in MANEUVER_NAMES],
+    Metric("radar_position_rmse", "m", label="radar RMSE"),
 )
+
+
+def radar_position_rmse(truth, sensor, first_scan: int) -> float | None:
+    """sqrt(mean over runs and scans >= first_scan of trace(J R_p J')), J at the true (r, az, el)."""
+    from pipeline.studies.mie_los.sensor import conversion_jacobian, spherical
+    if not (hasattr(sensor, "position") and hasattr(sensor, "noise_covariance")):
+        return None
+    index = [truth.state_names.index(n) for n in ("x", "y", "z")]
+    polar = spherical(truth.state[:, first_scan:, 0, index] - np.asarray(sensor.position))
+    J = conversion_jacobian(polar)
+    return float(np.sqrt(np.mean(np.einsum("...ij,jk,...ik->...", J, sensor.noise_covariance, J))))
 
 
 class FlightStudy(SingleTargetStudy):
@@ -71,6 +86,7 @@ class FlightStudy(SingleTargetStudy):
         position = [names.index(n) for n in ("x", "y", "z")]
         velocity = [names.index(n) for n in ("vx", "vy", "vz")]
         rows: list[dict] = []
+        radar = radar_position_rmse(truth, sensor, self.first_scan)
 
         def add(key: str, series: str, value: float | None) -> None:
             rows.append({"variant": display[key], "variant_key": key, "series": series, "window": None,
@@ -78,6 +94,7 @@ class FlightStudy(SingleTargetStudy):
                          "unit": unit_of(series), "n_runs": runs})
 
         for key, estimate in estimates.items():
+            add(key, "radar_position_rmse", radar)
             squared = {
                 "position": np.sum((estimate.state[..., position] - truth.state[:, :, 0, position]) ** 2, axis=-1),
                 "velocity": np.sum((estimate.state[..., velocity] - truth.state[:, :, 0, velocity]) ** 2, axis=-1),
