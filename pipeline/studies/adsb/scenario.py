@@ -8,6 +8,7 @@ drawn later: the flight is the same for all of them, so ``generate`` ignores the
 from __future__ import annotations
 
 import hashlib
+import logging
 from pathlib import Path
 
 import numpy as np
@@ -74,6 +75,8 @@ class RecordedFlight:
             climb_threshold=float(climb_threshold))
         self.dt = float(scan_period)
         self.source = find_flight_file(flight)
+        # what the cleaning dropped and the smoothing residual, to set beside the radar's noise
+        logging.getLogger("pipeline").info("[scenario] %s", self.flight.describe())
 
     def data_fingerprint(self) -> str:
         """SHA-256 of the flight's file: part of the scenario stage's cache key (pipeline.stages), so
