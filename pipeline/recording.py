@@ -48,7 +48,7 @@ import colorsys
 import re
 from contextlib import contextmanager
 from pathlib import Path
-from typing import TYPE_CHECKING, Mapping, Sequence
+from typing import TYPE_CHECKING, Callable, Mapping, Sequence
 
 import numpy as np
 
@@ -169,8 +169,15 @@ def write_recording(path: Path, *, experiment: str, truth: Truth, detections: De
                     model_names: Sequence[str] | Mapping[str, Sequence[str] | None] | None = None,
                     group_names: Sequence[str] | None = None,
                     config_text: str = "", description: str = "",
-                    sensor_position: Sequence[float] = (0.0, 0.0, 0.0)) -> None:
+                    sensor_position: Sequence[float] = (0.0, 0.0, 0.0),
+                    maneuver_names: Sequence[str] | None = None,
+                    to_geodetic: Callable[[np.ndarray], np.ndarray] | None = None) -> None:
     """Write ``path`` (an ``.rrd`` with its default blueprint) for the runs in ``record_runs``.
+
+    3-D only: ``maneuver_names`` names the codes of a truth label ``maneuver`` (R, K, 1), drawn as a
+    timeline (a class per scan and a log line at each change); ``to_geodetic`` maps (N, 3) positions
+    of the truth's frame to (N, 2) latitude, longitude [deg], adding a map view of the truth, the
+    tracks and the radar.
 
     ``estimates`` maps variant key (path-safe) -> estimate, in display order; ``metrics`` is the
     long metrics frame (variant, variant_key, metric, step, time, value, ...) or None. The file is
@@ -205,7 +212,8 @@ def write_recording(path: Path, *, experiment: str, truth: Truth, detections: De
     if is_3d(truth):
         _write_recording_3d(path, experiment=experiment, truth=truth, detections=detections, estimates=estimates,
                             display=display, colours=colours, metrics=metrics, record_runs=record_runs,
-                            config_text=config_text, description=description, sensor_position=sensor_position)
+                            config_text=config_text, description=description, sensor_position=sensor_position,
+                            maneuver_names=maneuver_names, to_geodetic=to_geodetic)
         return
     truth_xy = xy_index(truth.state_names, "truth")
     meas_xy = xy_index(detections.measurement_names, "detections")
@@ -728,11 +736,49 @@ def _styled_3d_metric_series(metric_series: dict) -> dict:
     return out
 
 
+def log_maneuvers(rr, rec, times, r: int, t: np.ndarray, codes: np.ndarray, names: Sequence[str]) -> None:
+    """A truth's maneuver class per scan on the timeline (/truth/run<r>/maneuver, the class's code)
+    and a log line where it changes (/truth/run<r>/maneuvers)."""
+    codes = np.asarray(codes).astype(np.int64)
+    steps = np.arange(codes.size)
+    legend = ", ".join(f"{i} {name.replace('_', '/')}" for i, name in enumerate(names))
+    rec.log(f"/truth/run{r}/maneuver", rr.SeriesLines(names=f"maneuver class ({legend})", colors=TRUTH_COLOUR,
+                                                     widths=1.5), static=True)
+    rec.send_columns(f"/truth/run{r}/maneuver", indexes=times(t, steps),
+                     columns=rr.Scalars.columns(scalars=codes.astype(np.float64)))
+    changes = np.nonzero(np.diff(codes, prepend=-1))[0]
+    lines = [f"{names[codes[k]].replace('_', ' / ')} from t = {t[k]:.0f} s" for k in changes]
+    rec.send_columns(f"/truth/run{r}/maneuvers", indexes=times(t[changes], changes),
+                     columns=rr.TextLog.columns(text=lines, level=["INFO"] * len(lines)))
+
+
+def log_map(rr, rec, times, ui, r: int, t: np.ndarray, truth_xyz: np.ndarray, origin: np.ndarray,
+            to_geodetic: Callable[[np.ndarray], np.ndarray], tracks: Mapping[str, np.ndarray],
+            colours: Mapping[str, Sequence[int]], display: Mapping[str, str]) -> None:
+    """Run r on a map (/map/run<r>/...): the truth and each track as geographic lines and their
+    current points, the radar as a point. ``to_geodetic``: (N, 3) -> (N, 2) latitude, longitude."""
+    rec.log("/map/radar", rr.GeoPoints(lat_lon=to_geodetic(origin[None]), radii=ui(6.0), colors=_RADAR_COLOUR),
+            static=True)
+    for name, xyz, colour in [("truth", truth_xyz, TRUTH_COLOUR)] + \
+            [(key, tracks[key], colours[key]) for key in tracks]:
+        ok = np.isfinite(xyz).all(-1)
+        if not ok.any():
+            continue
+        lat_lon = to_geodetic(xyz[ok])
+        entity = f"/map/run{r}/{name}"
+        rec.log(f"{entity}/path", rr.GeoLineStrings(lat_lon=[lat_lon], radii=ui(1.0), colors=colour), static=True)
+        steps = np.nonzero(ok)[0]
+        rec.log(entity, rr.GeoPoints.from_fields(radii=ui(5.0), colors=colour), static=True)
+        rec.send_columns(entity, indexes=times(t[steps], steps), columns=rr.GeoPoints.columns(positions=lat_lon))
+
+
 def _write_recording_3d(path: Path, *, experiment: str, truth: Truth, detections: Detections,
                         estimates: Mapping[str, TrackEstimate], display: dict, colours: dict, metrics,
                         record_runs: list[int], config_text: str, description: str,
-                        sensor_position: Sequence[float]) -> None:
+                        sensor_position: Sequence[float], maneuver_names: Sequence[str] | None = None,
+                        to_geodetic: Callable[[np.ndarray], np.ndarray] | None = None) -> None:
     R = truth.runs
+    maneuvers = maneuver_names if maneuver_names is not None and "maneuver" in truth.labels else None
     origin = np.asarray(sensor_position, dtype=np.float64).reshape(3)
     t_xyz = _xyz_index(truth.state_names, "truth")
     z_xyz, z_cov = _measurements_xyz(detections, origin)                       # (R, K, D, 3)
@@ -744,7 +790,8 @@ def _write_recording_3d(path: Path, *, experiment: str, truth: Truth, detections
     import rerun as rr  # lazily: ~0.6 s
     import rerun.blueprint as rrb
 
-    blueprint = _blueprint_3d(rrb, truth, t_xyz, origin, record_runs, estimates, display, metric_series, sigma)
+    blueprint = _blueprint_3d(rrb, truth, t_xyz, origin, record_runs, estimates, display, metric_series, sigma,
+                              maneuvers=maneuvers is not None, geographic=to_geodetic is not None)
 
     with atomic_recording(rr, path, experiment, blueprint) as rec:
         times = time_columns(rr)
@@ -791,6 +838,11 @@ def _write_recording_3d(path: Path, *, experiment: str, truth: Truth, detections
 
             for key, est in estimates.items():
                 _log_variant_3d(rr, rec, times, ui, key, r, est, t_xyz, colours[key], display[key], origin, sigma)
+            if maneuvers is not None:
+                log_maneuvers(rr, rec, times, r, truth.time, np.asarray(truth.labels["maneuver"][r])[:, 0], maneuvers)
+            if to_geodetic is not None:
+                log_map(rr, rec, times, ui, r, truth.time, xyz[:, 0], origin, to_geodetic,
+                        {key: est.state[r][..., t_xyz] for key, est in estimates.items()}, colours, display)
             if "acceleration" in truth.labels:
                 acc = np.asarray(truth.labels["acceleration"][r], dtype=np.float64)[:, 0]    # (K, 3)
                 for i, a in enumerate(AXES):
@@ -916,7 +968,7 @@ def _view_direction(track: np.ndarray, sensor: np.ndarray) -> np.ndarray:
 
 def _blueprint_3d(rrb, truth: Truth, t_xyz: list[int], origin: np.ndarray, record_runs: list[int],
                   estimates: Mapping[str, TrackEstimate], display: Mapping[str, str], metric_series: dict,
-                  sigma: float):
+                  sigma: float, maneuvers: bool = False, geographic: bool = False):
     """Top: per variant, a target-centred 3-D view (truth + measurements + that variant). Then the RMSE
     curves of all variants and the detections per step; the mean (and run r0's) input level per axis
     beside tabs with each variant's detection log and test statistic, NEES and the config."""
@@ -1000,6 +1052,15 @@ def _blueprint_3d(rrb, truth: Truth, t_xyz: list[int], origin: np.ndarray, recor
                                              columns=log_columns))
             if parts:
                 tabs.append(rrb.Vertical(*parts, name=display[key]))
+    if geographic and r0 is not None:
+        tabs.insert(0, rrb.MapView(origin="/map", name=f"map: truth, tracks and radar (run {r0})",
+                                   contents=["/map/radar", f"/map/run{r0}/**"]))
+    if maneuvers and r0 is not None:
+        tabs.insert(0, rrb.Vertical(
+            rrb.TimeSeriesView(origin=f"/truth/run{r0}/maneuver", name=f"maneuver class of the truth (run {r0})",
+                               axis_x=whole_run, plot_legend=legend),
+            rrb.TextLogView(origin=f"/truth/run{r0}/maneuvers", name="maneuver changes", columns=log_columns),
+            name="maneuvers"))
     tabs += _limit_views(rrb, present, whole_run)
     overview = [f"/world/run{r}/truth" for r in record_runs] + ["/world/radar"] + \
         [f"/world/run{r}/{k}/track" for r in record_runs for k in variant_keys]

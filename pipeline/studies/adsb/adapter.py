@@ -69,6 +69,23 @@ class FlightStudy(SingleTargetStudy):
             raise ValueError(f"first_scan: {first_scan!r} must be an integer >= 0")
         self.first_scan = first_scan
 
+    def record(self, path, inputs) -> None:
+        """Study 000's 3-D recording plus the maneuver class on the timeline and a map of run 0 (the
+        truth's ``site`` label gives the ENU origin's latitude, longitude and height)."""
+        from pipeline.recording import write_recording
+        truth = inputs.truth
+        to_geodetic = None
+        if "site" in truth.labels:
+            import pymap3d
+            latitude, longitude, height = (float(v) for v in np.asarray(truth.labels["site"])[0, 0, 0])
+
+            def to_geodetic(xyz: np.ndarray) -> np.ndarray:
+                lat, lon, _ = pymap3d.enu2geodetic(xyz[..., 0], xyz[..., 1], xyz[..., 2], latitude, longitude, height)
+                return np.stack([lat, lon], axis=-1)
+        where = getattr(inputs.sensor, "position", None)
+        located = {} if where is None else {"sensor_position": [float(v) for v in where]}
+        write_recording(path, maneuver_names=MANEUVER_NAMES, to_geodetic=to_geodetic, **inputs.common(), **located)
+
     def per_step_metrics(self, truth, estimate, sensor) -> dict[str, np.ndarray]:
         out = super().per_step_metrics(truth, estimate, sensor)
         index = [truth.state_names.index(n) for n in POSITION_VELOCITY]

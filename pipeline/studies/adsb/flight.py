@@ -59,6 +59,7 @@ class Flight:
     provenance: Mapping[str, str]
     state_names: tuple[str, ...] = STATE_NAMES
     maneuver_names: tuple[str, ...] = MANEUVER_NAMES
+    site: tuple[float, float, float] = (float("nan"), float("nan"), float("nan"))   # the ENU origin: lat, lon [deg], h [m]
 
     def maneuver_shares(self) -> dict[str, float]:
         """Share of scans per maneuver label."""
@@ -180,4 +181,4 @@ def build_flight(flight: str, scan_period: float = 1.0, start: float = 0.0, dura
                   maneuver=maneuver_labels(state, local_up(state[:, :3], site), turn_threshold, climb_threshold),
                   smoothing_residual=np.sqrt(np.nanmean(residual ** 2, axis=0)),
                   measured_time=t[in_window] - t_start, measured_position=samples[in_window],
-                  cleaning=cleaned, provenance=provenance)
+                  cleaning=cleaned, provenance=provenance, site=site)

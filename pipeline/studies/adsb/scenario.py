@@ -89,5 +89,7 @@ class RecordedFlight:
         K = len(flight.time)
         state = np.broadcast_to(flight.state, (runs, K, len(STATE_NAMES)))[:, :, None, :].copy()
         maneuver = np.broadcast_to(flight.maneuver, (runs, K))[:, :, None].copy()
+        # the ENU origin (latitude, longitude [deg], height [m]) per scan: the recording's map needs it
+        site = np.broadcast_to(np.asarray(flight.site, dtype=np.float64), (runs, K, 1, 3)).copy()
         return Truth(flight.time.copy(), state, STATE_NAMES,
-                     {"acceleration": state[..., 6:9].copy(), "maneuver": maneuver})
+                     {"acceleration": state[..., 6:9].copy(), "maneuver": maneuver, "site": site})
