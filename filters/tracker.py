@@ -37,6 +37,8 @@ from typing import Literal
 import numpy as np
 
 from filters.base import MeasurementSeries, TrackEstimate
+from filters.kalman import einsum as kalman_einsum
+from filters.kalman import predict, rows_times
 from filters.coordinates import converted_covariance, polar_to_cartesian
 from filters.mgekf import STATE_NAMES as SONAR_STATE_NAMES
 from filters.mgekf import SonarReports, cv_relative_model, nonlinear_update, relative_motion_model, sonar_start
@@ -123,8 +125,9 @@ class KalmanTracker:
         x, P = two_point_start(z[:, 0], z[:, 1], noise[:, 0], noise[:, 1], dt, nk, self.sigma_m**2)
         states[:, 1], covariances[:, 1] = x, P
         for k in range(2, K):
-            x = x @ F.T                                                           # predict
-            P = F @ P @ F.T + Q
+            # per-run products only (filters.kalman): a 2-D x @ F' over the runs is one BLAS call whose
+            # rounding depends on how many runs share it, and einsum's on its operands' strides
+            x, P = predict(x, P, F, Q)
             PHt = P[:, :, pos]                                                    # (R, n, d)
             S = PHt[:, pos, :] + noise[:, k]
             nu = np.where(detected[:, k, None], z[:, k] - x[:, pos], 0.0)
@@ -132,10 +135,10 @@ class KalmanTracker:
             solved = np.linalg.solve(S, np.concatenate([np.swapaxes(PHt, 1, 2), nu[..., None]], axis=-1))
             gain, s_nu = np.swapaxes(solved[..., :n], 1, 2), solved[..., n]
             seen = detected[:, k]
-            x = x + np.einsum("rij,rj->ri", gain, nu)
+            x = x + kalman_einsum("rij,rj->ri", gain, nu)
             updated = P - gain @ np.swapaxes(PHt, 1, 2)
             P = np.where(seen[:, None, None], 0.5 * (updated + np.swapaxes(updated, 1, 2)), P)
-            nis[:, k] = np.where(seen, np.einsum("ri,ri->r", nu, s_nu), np.nan)
+            nis[:, k] = np.where(seen, kalman_einsum("ri,ri->r", nu, s_nu), np.nan)
             states[:, k], covariances[:, k] = x, P
         return states, covariances, {"nis": nis, "nis_dof": np.where(np.isfinite(nis), float(d), 0.0)}
 
@@ -155,8 +158,7 @@ class KalmanTracker:
                 models[dt] = (cv_relative_model(dt, self.acceleration_density) if n == 4
                               else relative_motion_model(dt, self.tau, self.sigma_m))
             Phi, Gamma, Q = models[dt]
-            x = x @ Phi.T + reports.ownship_acceleration[:, k - 1] @ Gamma.T
-            P = Phi @ P @ Phi.T + Q
+            x, P = predict(x, P, Phi, Q, offset=rows_times(reports.ownship_acceleration[:, k - 1], Gamma.T))
             x, P, nis[:, k] = nonlinear_update(x, P, reports.z[:, k], bool(reports.active[k]), reports.bearing_std,
                                                reports.range_std, modified=False, return_nis=True)
             states[:, k], covariances[:, k] = x, P
