@@ -25,7 +25,7 @@ import numpy as np
 
 from filters.base import MeasurementSeries, TrackEstimate
 from filters.kalman import einsum, predict, rows_times, shared_times, times_shared, update
-from filters.models import AccelerationModelSet, two_point_initialisation
+from filters.models import AccelerationModelSet, two_point_initialisation, two_point_start
 
 
 @dataclass(frozen=True)
@@ -315,9 +315,11 @@ class _IMMBase:
         z = measurements.z
         R = z.shape[0]
         noise = measurements.noise_covariance
-        if noise.ndim == 4:
-            noise = noise[0, 1]
-        x0, P0 = two_point_initialisation(z[:, 0], z[:, 1], float(np.diff(measurements.time[:2])[0]), noise)
+        dt = float(np.diff(measurements.time[:2])[0])
+        if noise.ndim == 4:       # each run's own scan 0 and 1 covariances (converted radar plots)
+            x0, P0 = two_point_start(z[:, 0], z[:, 1], noise[:, 0], noise[:, 1], dt)
+        else:
+            x0, P0 = two_point_initialisation(z[:, 0], z[:, 1], dt, noise)
         members = self._initial_models()
         A = members.size
         if self.initial_model not in members:

@@ -80,3 +80,16 @@ def test_a_noisy_recording_is_cleaned_and_counted():
     assert spoofed.dropped["jump"] > 100 and np.all(np.diff(spoofed.time) > 0)
     shifted = load_flight("noisy_time_issue")
     assert shifted.dropped["stale_position"] > 0 and np.all(np.diff(shifted.time) > 0)
+
+
+def test_study_001s_imms_track_a_real_flight_on_the_horizontal_plane(tmp_path):
+    """FSIMM and AO-VSIMM take 2-D positions: the radar's plots cut to the horizontal plane
+    (HorizontalRadar) with a horizontal truth in study 001's layout."""
+    out, _ = run_in_process(tmp_path, "plane", "experiment=adsb_jet_horizontal", "mc.runs=3", "scenario.duration=120")
+    summary = out.summary
+    overall = rows(summary.filter(pl.col("window") == "all"), "position_rmse")
+    radar = rows(summary, "radar_position_rmse")["fsimm"]
+    assert set(overall) == {"kf_cv", "imm_cv_ct", "fsimm", "ao_vsimm"}
+    assert all(value < 0.8 * radar for value in overall.values()), (overall, radar)
+    models = rows(summary.filter(pl.col("window") == "all"), "models_evaluated")
+    assert models["ao_vsimm"] < models["fsimm"] == 13.0

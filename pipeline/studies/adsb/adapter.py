@@ -3,7 +3,8 @@
 
 Beyond the shared per-step metrics (position, velocity, acceleration RMSE, NEES, NIS):
 
-- ``nees_position_velocity`` with its 95 % band: the NEES of the position-velocity block (6 dof),
+- ``nees_position_velocity`` with its 95 % band: the NEES of the position-velocity block (6 dof; 4 on
+  the horizontal plane),
   the one block every family estimates (a CV filter has no acceleration, so its full-state NEES is
   undefined and would drop it from the comparison);
 
@@ -34,7 +35,8 @@ from pipeline.track import SingleTargetStudy
 POSITION_VELOCITY = ("x", "y", "z", "vx", "vy", "vz")
 
 register(
-    Metric("nees_position_velocity", "1 (chi2 dof = 6)", "-", label="NEES p,v", dof=6),
+    Metric("nees_position_velocity", "1 (chi2 dof = 6; 4 on the horizontal plane)", "-", label="NEES p,v",
+           dof="position-velocity block size"),
     Metric("nees_position_velocity_lower", BAND, "-"), Metric("nees_position_velocity_upper", BAND, "-"),
     Metric("nees_position_velocity_in_band", "fraction of scans", "fraction", label="in band", decimals=2),
     *[Metric(f"position_rmse_{name}", "m", quantity="position_rmse_by_maneuver", component=name,
@@ -51,9 +53,15 @@ def radar_position_rmse(truth, sensor, first_scan: int) -> float | None:
     from pipeline.studies.mie_los.sensor import conversion_jacobian, spherical
     if not (hasattr(sensor, "position") and hasattr(sensor, "noise_covariance")):
         return None
-    index = [truth.state_names.index(n) for n in ("x", "y", "z")]
-    polar = spherical(truth.state[:, first_scan:, 0, index] - np.asarray(sensor.position))
-    J = conversion_jacobian(polar)
+    names = truth.state_names
+    if "z" in names:
+        xyz = truth.state[:, first_scan:, 0, [names.index(n) for n in ("x", "y", "z")]]
+        kept = 3
+    else:                     # a horizontal truth (HorizontalRadar): the height from its label, the error in x, y
+        xyz = np.concatenate([truth.state[:, first_scan:, 0, [names.index(n) for n in ("x", "y")]],
+                              np.asarray(truth.labels["up"])[:, first_scan:, 0]], axis=-1)
+        kept = 2
+    J = conversion_jacobian(spherical(xyz - np.asarray(sensor.position)))[..., :kept, :]
     return float(np.sqrt(np.mean(np.einsum("...ij,jk,...ik->...", J, sensor.noise_covariance, J))))
 
 
@@ -88,7 +96,7 @@ class FlightStudy(SingleTargetStudy):
 
     def per_step_metrics(self, truth, estimate, sensor) -> dict[str, np.ndarray]:
         out = super().per_step_metrics(truth, estimate, sensor)
-        index = [truth.state_names.index(n) for n in POSITION_VELOCITY]
+        index = [truth.state_names.index(n) for n in POSITION_VELOCITY if n in truth.state_names]
         error = estimate.state[..., index] - truth.state[:, :, 0, index]
         covariance = estimate.covariance[..., index, :][..., :, index]
         out.update(consistency_metrics("nees_position_velocity", nees(error, covariance), len(index)))
@@ -100,8 +108,8 @@ class FlightStudy(SingleTargetStudy):
         labels = np.asarray(truth.labels["maneuver"])[0, :, 0]
         counted = np.arange(labels.size) >= self.first_scan
         names = truth.state_names
-        position = [names.index(n) for n in ("x", "y", "z")]
-        velocity = [names.index(n) for n in ("vx", "vy", "vz")]
+        position = [names.index(n) for n in ("x", "y", "z") if n in names]
+        velocity = [names.index(n) for n in ("vx", "vy", "vz") if n in names]
         rows: list[dict] = []
         radar = radar_position_rmse(truth, sensor, self.first_scan)
 

@@ -19,6 +19,9 @@ from pipeline.studies.adsb.flight import MANEUVER_NAMES, STATE_NAMES, Flight, bu
 from pipeline.studies.adsb.reading import find_flight_file
 
 
+HORIZONTAL_STATE_NAMES = ("x", "vx", "y", "vy")      # study 001's layout (horizontal=True)
+
+
 class RecordedFlight:
     """A window of one recorded flight, smoothed into a truth (pipeline.studies.adsb.flight).
 
@@ -38,6 +41,8 @@ class RecordedFlight:
     max_speed, max_vertical_speed : speeds beyond these mark position / altitude jumps [m/s]
     turn_threshold : normal horizontal acceleration above which a scan is a turn [m/s^2]
     climb_threshold : |vertical rate| above which a scan is a climb or descent [m/s]
+    horizontal : the truth on the horizontal plane, in study 001's layout (x, vx, y, vy), with the
+        height as the label ``up`` (for 2-D filters behind HorizontalRadar)
     """
 
     maneuver_names = MANEUVER_NAMES
@@ -47,7 +52,10 @@ class RecordedFlight:
                  site_longitude: float | None = None, site_height: float = 0.0,
                  horizontal_noise_std: float = 25.0, vertical_noise_std: float = 5.0, jerk_psd: float = 1.0,
                  max_gap: float = 20.0, max_speed: float = 600.0, max_vertical_speed: float = 150.0,
-                 turn_threshold: float = 1.5, climb_threshold: float = 2.5) -> None:
+                 turn_threshold: float = 1.5, climb_threshold: float = 2.5, horizontal: bool = False) -> None:
+        if not isinstance(horizontal, bool):
+            raise ValueError(f"horizontal: {horizontal!r} must be true or false")
+        self.horizontal = horizontal
         if not isinstance(flight, str) or not flight.strip():
             raise ValueError(f"flight: {flight!r} must be a sample name or the path of a file")
         positive("scan_period", scan_period, "s")
@@ -91,5 +99,10 @@ class RecordedFlight:
         maneuver = np.broadcast_to(flight.maneuver, (runs, K))[:, :, None].copy()
         # the ENU origin (latitude, longitude [deg], height [m]) per scan: the recording's map needs it
         site = np.broadcast_to(np.asarray(flight.site, dtype=np.float64), (runs, K, 1, 3)).copy()
+        if self.horizontal:          # study 001's layout; the height stays as a label for the radar
+            plane = [STATE_NAMES.index(n) for n in HORIZONTAL_STATE_NAMES]
+            return Truth(flight.time.copy(), state[..., plane].copy(), HORIZONTAL_STATE_NAMES,
+                         {"acceleration": state[..., 6:8].copy(), "maneuver": maneuver, "site": site,
+                          "up": state[..., 2:3].copy()})
         return Truth(flight.time.copy(), state, STATE_NAMES,
                      {"acceleration": state[..., 6:9].copy(), "maneuver": maneuver, "site": site})
