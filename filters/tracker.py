@@ -5,7 +5,11 @@ Motion model, per Cartesian axis (Bar-Shalom, Li & Kirubarajan 2001, 6.2 and 8.2
 - ``cv``: (p, v), white acceleration noise of power spectral density ``acceleration_density``
   [m^2/s^3]: F = [[1, T], [0, 1]], Q = q [[T^3/3, T^2/2], [T^2/2, T]];
 - ``singer``: (p, v, a), acceleration a first-order Markov process with time constant ``tau`` [s]
-  and standard deviation ``sigma_m`` [m/s^2] (filters.models.singer_*).
+  and standard deviation ``sigma_m`` [m/s^2] (filters.models.singer_*);
+- ``ca``: (p, v, a), nearly constant acceleration, white jerk of power spectral density
+  ``jerk_density`` [m^2/s^5] (Bar-Shalom et al. 6.2.3, the Wiener-process acceleration model):
+  F = [[1, T, T^2/2], [0, 1, T], [0, 0, 1]], Q = q [[T^5/20, T^4/8, T^3/6], [T^4/8, T^3/3, T^2/2],
+  [T^3/6, T^2/2, T]]; its acceleration starts at 0 with standard deviation ``sigma_m``.
 
 Measurements, by kind (filters.base.MEASUREMENT_KINDS), all batched over the Monte Carlo runs:
 
@@ -48,16 +52,17 @@ AXES = ("x", "y", "z")
 
 
 class KalmanTracker:
-    """A CV or Singer Kalman filter (converted measurements) / EKF (sonar bearings); see the module docstring."""
+    """A CV, Singer or CA Kalman filter (converted measurements) / EKF (sonar bearings); see the module docstring."""
 
     accepts = frozenset({"position_xy", "range_azimuth_elevation", "sonar_bearing_range"})
 
-    def __init__(self, name: str = "KF", motion: Literal["cv", "singer"] = "singer", tau: float = 10.0,
-                 sigma_m: float = 5.0, acceleration_density: float = 10.0, initial_velocity_std: float = 15.0) -> None:
-        if motion not in ("cv", "singer"):
-            raise ValueError(f"motion: {motion!r} is not one of ['cv', 'singer']")
+    def __init__(self, name: str = "KF", motion: Literal["cv", "singer", "ca"] = "singer", tau: float = 10.0,
+                 sigma_m: float = 5.0, acceleration_density: float = 10.0, initial_velocity_std: float = 15.0,
+                 jerk_density: float = 1.0) -> None:
+        if motion not in ("cv", "singer", "ca"):
+            raise ValueError(f"motion: {motion!r} is not one of ['cv', 'singer', 'ca']")
         for key, value in (("tau", tau), ("sigma_m", sigma_m), ("acceleration_density", acceleration_density),
-                           ("initial_velocity_std", initial_velocity_std)):
+                           ("initial_velocity_std", initial_velocity_std), ("jerk_density", jerk_density)):
             if not (np.isfinite(value) and value > 0):
                 raise ValueError(f"{key}: {value} must be a finite number > 0")
         self.name = name
@@ -65,6 +70,7 @@ class KalmanTracker:
         self.tau, self.sigma_m = float(tau), float(sigma_m)
         self.acceleration_density = float(acceleration_density)
         self.initial_velocity_std = float(initial_velocity_std)
+        self.jerk_density = float(jerk_density)
 
     # ---- model ----------------------------------------------------------------------------------
     @property
@@ -77,6 +83,12 @@ class KalmanTracker:
             q = self.acceleration_density
             return (np.array([[1.0, dt], [0.0, 1.0]]),
                     q * np.array([[dt**3 / 3.0, dt**2 / 2.0], [dt**2 / 2.0, dt]]))
+        if self.motion == "ca":
+            q = self.jerk_density
+            return (np.array([[1.0, dt, dt**2 / 2.0], [0.0, 1.0, dt], [0.0, 0.0, 1.0]]),
+                    q * np.array([[dt**5 / 20.0, dt**4 / 8.0, dt**3 / 6.0],
+                                  [dt**4 / 8.0, dt**3 / 3.0, dt**2 / 2.0],
+                                  [dt**3 / 6.0, dt**2 / 2.0, dt]]))
         return singer_transition(dt, self.tau), singer_process_noise(dt, self.tau, self.sigma_m)
 
     def state_names(self, axes: int) -> tuple[str, ...]:
@@ -143,6 +155,8 @@ class KalmanTracker:
         return states, covariances, {"nis": nis, "nis_dof": np.where(np.isfinite(nis), float(d), 0.0)}
 
     def _run_sonar(self, reports: SonarReports):
+        if self.motion == "ca":
+            raise ValueError("motion: 'ca' takes positions or radar measurements; the sonar EKF takes 'cv' or 'singer'")
         R, K, _ = reports.z.shape
         n = 4 if self.motion == "cv" else 6
         names = SONAR_STATE_NAMES[:n]

@@ -44,7 +44,7 @@ def test_every_flight_runs_and_the_filters_beat_the_raw_radar(tmp_path, experime
         value = rows(summary, f"position_rmse_{name}")["kf_cv"]
         assert (value is not None and np.isfinite(value)) == (count > 0), (name, count, value)
     band = rows(summary, "nees_position_velocity_in_band")
-    assert set(band) == {"kf_cv", "kf_singer", "imm_cv_ct", "mie_a", "mie_b", "mie_c"} and all(0 <= v <= 1 for v in band.values())
+    assert set(band) == {"kf_cv", "kf_ca", "kf_singer", "imm_cv_ct", "mie_a", "mie_b", "mie_c"} and all(0 <= v <= 1 for v in band.values())
 
 
 def test_the_flight_file_bytes_are_in_the_cache_key(tmp_path, caplog):

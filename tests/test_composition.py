@@ -52,7 +52,7 @@ def test_a_filter_that_declares_nothing_takes_a_measurement_series():
      "['position_xy', 'range_azimuth_elevation'] measurements, but this experiment's sensor "
      "(pipeline.studies.sonar.sensor.ActivePassiveSonar) produces 'sonar_bearing_range'"),
     (["experiment=mie_los", "+filter@filters.x=ammpf"],
-     "Filters in conf/filter/ that take 'range_azimuth_elevation': ['imm_cv_ct', 'kalman_cv', 'kalman_singer', "
+     "Filters in conf/filter/ that take 'range_azimuth_elevation': ['imm_cv_ct', 'kalman_ca', 'kalman_cv', 'kalman_singer', "
      "'kalman_sonar', 'mie_a', 'mie_a_full', 'mie_b', 'mie_b_nocomp', 'mie_c']"),
     (["experiment=ao_vsimm_s1", "filters.fsimm.models=${nothing}"],
      "filters.fsimm.models: '${nothing}' cannot be resolved (Interpolation key 'nothing' not found)"),

@@ -99,3 +99,22 @@ def test_on_sonar_reports_it_is_the_studys_plain_ekf():
     theirs = PlainEKF(tau=60.0, sigma_m=0.003).run(reports)
     np.testing.assert_allclose(ours.state, theirs.state, rtol=0, atol=1e-8)
     np.testing.assert_allclose(ours.covariance, theirs.covariance, rtol=1e-9, atol=1e-8)
+
+
+def test_the_ca_model_is_the_white_jerk_model_and_tracks_a_constant_acceleration_exactly():
+    """motion='ca' (Bar-Shalom et al. 6.2.3): F and Q by hand at T = 2 s; noise-free constant
+    acceleration is predicted exactly once the acceleration is estimated."""
+    from filters.base import MeasurementSeries
+    tracker = KalmanTracker(motion="ca", jerk_density=0.5)
+    F, Q = tracker.axis_model(2.0)
+    np.testing.assert_allclose(F, [[1, 2, 2], [0, 1, 2], [0, 0, 1]])
+    np.testing.assert_allclose(Q, 0.5 * np.array([[32 / 20, 16 / 8, 8 / 6], [16 / 8, 8 / 3, 2], [8 / 6, 2, 2]]))
+    t = np.arange(40.0)
+    z = np.stack([3.0 * t + 0.5 * 0.8 * t**2, -2.0 * t], axis=-1)[None]          # ax = 0.8, ay = 0 m/s^2
+    series = MeasurementSeries(t, z, 1e-6 * np.eye(2), np.ones((1, 40), bool), np.zeros(40, int),
+                               state_names=("x", "vx", "ax", "y", "vy", "ay"))
+    estimate = tracker.run(series)
+    np.testing.assert_allclose(estimate.state[0, -1], [z[0, -1, 0], 3.0 + 0.8 * 39, 0.8, z[0, -1, 1], -2.0, 0.0],
+                               atol=1e-3)
+    with pytest.raises(ValueError, match="motion: 'cj' is not one of"):
+        KalmanTracker(motion="cj")
