@@ -17,7 +17,7 @@ from typing import Any, Callable, Iterator, Mapping
 import polars as pl
 
 from pipeline import schemas
-from pipeline.track import filter_chunks, filter_runs, truth_runs, with_fault_flags
+from pipeline.track import filter_chunks, truth_runs, with_fault_flags
 
 Codec = Callable[[Any, Mapping[str, Any]], tuple[pl.DataFrame, dict]]     # (value, the inputs) -> table
 Decoder = Callable[[pl.DataFrame, dict[str, str]], Any]
@@ -95,7 +95,7 @@ def declare(cfg: Any, resolved: Mapping[str, Any], prepared: Any, fault_checks: 
             # the fault checks decide the table's fault column, so they are part of its key
             {"filter": resolved["filters"][v], **study_node, "faults": resolved.get("faults")},
             ("pipeline.stages", "pipeline.schemas", "pipeline.track"),
-            lambda truth, detections, e=estimator: filter_runs(e, track_input(truth, detections), chunk_runs),
+            lambda truth, detections, e=estimator: e.run(track_input(truth, detections)),   # chunked: track_chunks
             lambda estimate, inputs: with_fault_flags(study, estimate, inputs["truth"], fault_checks),
             study.estimate_from_frame,
             lambda i, n=name: f"{n}: {runs} runs x {i['truth'].time.size} scans",

@@ -217,15 +217,21 @@ def _renames_locked(directory: Path) -> Iterator[None]:
         os.close(fd)
 
 
+def _temp_beside(path: Path) -> tuple[int, str]:
+    """(fd, name) of a new hidden temp file in ``path``'s folder (made if missing), which no
+    ``*.parquet`` glob matches; an OSError becomes a StorageError naming the path."""
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        return tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    except OSError as exc:
+        raise cannot_write(path, exc) from None
+
+
 def _atomic_write(path: Path, write, binary: bool = True, locked: bool = False) -> None:
     """Write through a hidden temp file in the target directory, fsync, then rename over ``path``
     (with ``locked``, the rename alone runs under the directory's rename lock). An OSError (no such
     folder, no permission, no space, a folder in the way) becomes a StorageError naming the path."""
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    except OSError as exc:
-        raise cannot_write(path, exc) from None
+    fd, tmp = _temp_beside(path)
     try:
         with os.fdopen(fd, "wb" if binary else "w") as f:
             write(f)
@@ -267,11 +273,7 @@ class TableStream:
 
     def __init__(self, path: Path, locked: bool = False) -> None:
         self.path, self.locked = Path(path), locked
-        try:
-            self.path.parent.mkdir(parents=True, exist_ok=True)
-            fd, tmp = tempfile.mkstemp(dir=self.path.parent, prefix=f".{self.path.name}.", suffix=".tmp")
-        except OSError as exc:
-            raise cannot_write(self.path, exc) from None
+        fd, tmp = _temp_beside(self.path)
         os.close(fd)
         self.tmp = Path(tmp)
         self.writer = None
@@ -290,6 +292,9 @@ class TableStream:
         self.checksum.update(df)
 
     def finish(self, metadata: Mapping[str, str]) -> Path:
+        if self.writer is None:
+            self.abort()
+            raise ValueError(f"TableStream {self.path}: finish() before any chunk was written")
         metadata = {str(k): str(v) for k, v in metadata.items()}
         metadata[META_CHECKSUM] = self.checksum.hexdigest(metadata)
         try:

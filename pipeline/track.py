@@ -82,21 +82,6 @@ class SingleTargetStudy(Study):
 
 
 # ---- the track stage's compute and codec (part of its cache key: pipeline.fingerprint) ------------
-def filter_runs(estimator: Any, track_input: Any, chunk_runs: int | None) -> Any:
-    """``estimator.run`` over all runs at once, or ``chunk_runs`` runs at a time (mc.chunk_runs).
-
-    Each run's random numbers depend only on (seed, stage, run), and the filters treat runs
-    independently, so the chunked result equals the whole one bit for bit (tested): chunking
-    only bounds memory.
-    """
-    runs = _runs_of(track_input)
-    if not chunk_runs or chunk_runs >= runs:
-        return estimator.run(track_input)
-    parts = [estimator.run(track_input.select(range(first, min(first + chunk_runs, runs))))
-             for first in range(0, runs, chunk_runs)]
-    return type(parts[0]).concat_runs(parts)
-
-
 def filter_chunks(estimator: Any, track_input: Any, chunk_runs: int) -> Iterator[tuple[int, Any]]:
     """(first run, the estimate of the next ``chunk_runs`` runs), chunk after chunk, so that only one
     chunk's estimate is in memory at a time (the track stage streams each to its table). Each chunk's
