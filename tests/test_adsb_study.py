@@ -85,7 +85,7 @@ def test_a_noisy_recording_is_cleaned_and_counted():
 def test_study_001s_imms_track_a_real_flight_on_the_horizontal_plane(tmp_path):
     """FSIMM and AO-VSIMM take 2-D positions: the radar's plots cut to the horizontal plane
     (HorizontalRadar) with a horizontal truth in study 001's layout."""
-    out, _ = run_in_process(tmp_path, "plane", "experiment=adsb_jet_horizontal", "mc.runs=3", "scenario.duration=120")
+    out, ctx = run_in_process(tmp_path, "plane", "experiment=adsb_jet_horizontal", "mc.runs=3", "scenario.duration=120")
     summary = out.summary
     overall = rows(summary.filter(pl.col("window") == "all"), "position_rmse")
     radar = rows(summary, "radar_position_rmse")["fsimm"]
@@ -93,3 +93,10 @@ def test_study_001s_imms_track_a_real_flight_on_the_horizontal_plane(tmp_path):
     assert all(value < 0.8 * radar for value in overall.values()), (overall, radar)
     models = rows(summary.filter(pl.col("window") == "all"), "models_evaluated")
     assert models["ao_vsimm"] < models["fsimm"] == 13.0
+
+    # the report: its target passes, and every finding says something (a class with no scans says so)
+    from pipeline.report import write_run_report
+    report = write_run_report(ctx.run_dir)
+    assert [t.verdict for t in report.targets] == ["PASS"]
+    text = report.path.read_text()
+    assert "no value" not in text and "no turning scans in this window" in text
