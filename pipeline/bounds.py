@@ -15,6 +15,7 @@ from typing import Any, Callable
 import numpy as np
 
 from pipeline.data import Truth
+from pipeline.uncertainty import RunValues
 
 
 def positive_parameter(key: str, value: float) -> float:
@@ -49,10 +50,10 @@ class PerTruth:
         return value
 
 
-def bound_metrics(bound, truth: Truth, sensor, position_rmse: np.ndarray) -> dict[str, np.ndarray]:
-    """``position_bound`` and ``position_rmse_over_bound`` (K,) for a bound node (None: none)."""
+def bound_metrics(bound, truth: Truth, sensor, position_rmse: RunValues) -> dict[str, np.ndarray | RunValues]:
+    """``position_bound`` (K,) and ``position_rmse_over_bound`` (the RMSE kept per run, over the bound)
+    for a bound node (None: none)."""
     if bound is None:
         return {}
     limit = bound.position_bound(truth, sensor)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return {"position_bound": limit, "position_rmse_over_bound": position_rmse / limit}
+    return {"position_bound": limit, "position_rmse_over_bound": position_rmse.over(limit)}

@@ -16,6 +16,8 @@ import polars as pl
 from filters.base import TrackEstimate
 from pipeline.data import Truth
 from pipeline.metrics import is_count, nees, unit_of
+from pipeline.uncertainty import (CONFIDENCE, RESAMPLES, Estimated, Interval, RunValues, WindowStatistic,
+                                  comparisons_schema, counts_as_flags, summarize)
 
 AXES = ("x", "y", "z")
 @dataclass(frozen=True)
@@ -25,13 +27,15 @@ class Window:
     last_step: int
 
 
-def _rmse(err: np.ndarray) -> np.ndarray:
-    """err (R, K, d) -> (K,) sqrt(mean over runs of |err|^2), ignoring runs without an estimate."""
-    return np.sqrt(np.nanmean(np.sum(err**2, axis=-1), axis=0))
+def _squared(err: np.ndarray) -> np.ndarray:
+    """err (R, K, d) -> (R, K) |err|^2 (NaN where the run has no estimate)."""
+    return np.sum(err**2, axis=-1)
 
 
-def per_step_metrics(truth: Truth, estimate: TrackEstimate) -> dict[str, np.ndarray]:
-    """Per-step Monte Carlo metrics (K,) of one variant against target 0's truth.
+def per_step_metrics(truth: Truth, estimate: TrackEstimate) -> dict[str, RunValues | np.ndarray]:
+    """Monte Carlo metrics of one variant against target 0's truth, kept per run (``RunValues``: the
+    per-step value over the runs, and the summary's intervals, come from them); fixed (K,) arrays
+    for the consistency bands.
 
     Errors are taken in the truth's state order (``truth.state_names``; estimates use the same):
 
@@ -56,35 +60,50 @@ def per_step_metrics(truth: Truth, estimate: TrackEstimate) -> dict[str, np.ndar
     vel = [names.index(n) for n in ("vx", "vy", "vz") if n in names]
     acc = [names.index(n) for n in ("ax", "ay", "az") if n in names]
     extras = estimate.extras
-    out: dict[str, np.ndarray] = {}
+    out: dict[str, RunValues | np.ndarray] = {}
     with np.errstate(invalid="ignore"), quiet_nanmean():
-        out["position_rmse"] = _rmse(err[..., pos])
+        out["position_rmse"] = RunValues(_squared(err[..., pos]), "rms")
         if vel:
-            out["velocity_rmse"] = _rmse(err[..., vel])
+            out["velocity_rmse"] = RunValues(_squared(err[..., vel]), "rms")
         if acc:
-            out["acceleration_rmse"] = _rmse(err[..., acc])
+            out["acceleration_rmse"] = RunValues(_squared(err[..., acc]), "rms")
         if "acceleration" in extras and "acceleration" in truth.labels:
             acc_err = extras["acceleration"] - truth.labels["acceleration"][:, :, 0, :]
             for i in range(min(acc_err.shape[-1], len(AXES))):
-                out[f"acceleration_rmse_{AXES[i]}"] = _rmse(acc_err[..., i:i + 1])
+                out[f"acceleration_rmse_{AXES[i]}"] = RunValues(_squared(acc_err[..., i:i + 1]), "rms")
         started = np.isfinite(estimate.state).all(axis=-1)
         # the run average with its 95 % chi-square band (n dof per valid run)
-        out.update(consistency_metrics("nees", nees(err, estimate.covariance), err.shape[-1]))
-        out.update(nis_metrics(extras))
+        out.update(consistency("nees", nees(err, estimate.covariance), err.shape[-1]))
+        out.update(nis_metrics(extras, per_run=True))
         if "models_evaluated" in extras:
             evaluated = extras["models_evaluated"].astype(float)
-            out["models_evaluated"] = np.where(started.any(axis=0), evaluated.mean(axis=0), np.nan)
+            # every run counts at a step where any has started (a run not yet started evaluates none)
+            out["models_evaluated"] = RunValues(np.where(started.any(axis=0)[None, :], evaluated, np.nan), "mean")
         if "input_level" in extras:
             level = np.asarray(extras["input_level"], dtype=float)
             for i in range(min(level.shape[-1], len(AXES))):
-                out[f"input_level_{AXES[i]}"] = np.nanmean(level[..., i], axis=0)
+                out[f"input_level_{AXES[i]}"] = RunValues(level[..., i], "mean")
         if "maneuver_detected" in extras:
-            out["detections"] = _count(extras["maneuver_detected"])
+            out["detections"] = RunValues(counts_as_flags(extras["maneuver_detected"]), "sum")
         if "maneuver_detected_axis" in extras:
             per_axis = np.asarray(extras["maneuver_detected_axis"])
             for i in range(min(per_axis.shape[-1], len(AXES))):
-                out[f"detections_axis_{AXES[i]}"] = _count(per_axis[..., i])
+                out[f"detections_axis_{AXES[i]}"] = RunValues(counts_as_flags(per_axis[..., i]), "sum")
     return out
+
+
+def resolved(metrics: Mapping[str, RunValues | np.ndarray]) -> dict[str, np.ndarray]:
+    """metric name -> (K,) per-step values: a RunValues' value over the runs, a fixed array as it is."""
+    return {name: m.per_step() if isinstance(m, RunValues) else np.asarray(m, dtype=float)
+            for name, m in metrics.items()}
+
+
+def consistency(name: str, values: np.ndarray, dof: np.ndarray | int,
+                probability: float | None = None) -> dict[str, RunValues | np.ndarray]:
+    """``consistency_metrics`` with the run average kept per run (its interval: a mean over runs)."""
+    band = consistency_metrics(name, values, dof, CONSISTENCY_PROBABILITY if probability is None else probability)
+    band[name] = RunValues(np.asarray(values, dtype=float), "mean")
+    return band
 
 
 CONSISTENCY_PROBABILITY = 0.95
@@ -119,14 +138,14 @@ def consistency_metrics(name: str, values: np.ndarray, dof: np.ndarray | int,
     return {name: mean, f"{name}_lower": lower, f"{name}_upper": upper}
 
 
-def nis_metrics(extras: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
+def nis_metrics(extras: Mapping[str, np.ndarray], per_run: bool = False) -> dict[str, np.ndarray | RunValues]:
     """``nis``, ``nis_lower``, ``nis_upper`` from an estimator's extras (empty when it exports none).
 
     The filter convention: ``extras["nis"]`` (R, K) is each run's normalised innovation squared
     nu' S^-1 nu at each scan, from the innovation the filter itself used (an IMM's combined
     moment-matched prediction, a particle filter's predicted cloud), NaN where the run had no
     measurement or had not started; ``extras["nis_dof"]`` (R, K) the measurement dimension of that
-    innovation (chi-square dof for a consistent filter).
+    innovation (chi-square dof for a consistent filter). ``per_run``: ``nis`` as a RunValues.
     """
     if "nis" not in extras:
         return {}
@@ -134,13 +153,7 @@ def nis_metrics(extras: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
     dof = np.asarray(extras.get("nis_dof", np.nan), dtype=float)
     if not np.all(np.isfinite(np.broadcast_to(dof, values.shape)[np.isfinite(values)])):
         raise ValueError("extras['nis']: a NIS value without its dof: export extras['nis_dof'] (R, K) beside it")
-    return consistency_metrics("nis", values, dof)
-
-
-def _count(flags: np.ndarray) -> np.ndarray:
-    """(R, K) 0/1 flags (NaN counts as 0) -> (K,) number of runs flagged at each step."""
-    values = np.asarray(flags, dtype=float)
-    return np.sum((values != 0) & np.isfinite(values), axis=0).astype(float)
+    return consistency("nis", values, dof) if per_run else consistency_metrics("nis", values, dof)
 
 
 @contextlib.contextmanager
@@ -154,35 +167,45 @@ def quiet_nanmean() -> Iterator[None]:
         yield
 
 
-def metrics_frame(time: np.ndarray, variants: Mapping[str, tuple[str, dict[str, np.ndarray]]], runs: int
-                  ) -> pl.DataFrame:
-    """Long table: variant, variant_key, metric, step, time, value, n_runs."""
+def metrics_frame(time: np.ndarray, variants: Mapping[str, tuple[str, Mapping[str, RunValues | np.ndarray]]],
+                  runs: int) -> pl.DataFrame:
+    """Long table: variant, variant_key, metric, step, time, value, n_runs. A step where a metric is
+    undefined (before the first estimate, the NIS before the first innovation) is null, not NaN, so
+    SQL aggregates skip it."""
     parts = []
     K = time.size
     for key, (display, metrics) in variants.items():
-        for metric, values in metrics.items():
+        for metric, values in resolved(metrics).items():
             parts.append(pl.DataFrame({
                 "variant": [display] * K, "variant_key": [key] * K, "series": [metric] * K,
                 "step": np.arange(K, dtype=np.int32), "time": time.astype(float), "value": values.astype(float),
                 "n_runs": np.full(K, runs, dtype=np.int32),
             }))
-    return pl.concat(parts)
+    return pl.concat(parts).with_columns(pl.col("value").fill_nan(None))
 
 
-def group_reached(estimate: TrackEstimate, group: int, by_step: int) -> float | None:
-    """Fraction of runs whose running set included ``group`` at some step <= by_step."""
+def group_reached(estimate: TrackEstimate, group: int, by_step: int) -> np.ndarray | None:
+    """(R,) 1.0 for a run whose running set included ``group`` at some step <= by_step, else 0.0 (the
+    summary's fraction of runs is their mean)."""
     if "active_group" not in estimate.extras:
         return None
     active = estimate.extras["active_group"][:, : by_step + 1]
     if (active < 0).all():
         return None
     candidate = estimate.extras.get("candidate_group", np.full_like(active, -1))[:, : by_step + 1]
-    return float(((active == group) | (candidate == group)).any(axis=1).mean())
+    return ((active == group) | (candidate == group)).any(axis=1).astype(float)
+
+
+def window_statistic(metric: str, values: RunValues, w: Window) -> WindowStatistic:
+    """A per-step metric over a window: the sum for a count metric (the registry's aggregation), else
+    the mean of the per-step values (NaN steps ignored)."""
+    steps = np.arange(w.first_step, min(w.last_step, values.values.shape[1] - 1) + 1)
+    return WindowStatistic(values, steps, "sum" if is_count(metric) else "mean")
 
 
 def window_value(metric: str, values: np.ndarray, w: Window) -> float:
-    """A per-step metric over a window: the sum for a count metric, else the mean (NaN steps ignored);
-    NaN when the window holds no step (or, for a mean, no finite value)."""
+    """A fixed per-step array over a window, as ``window_statistic`` reduces it; NaN when the window
+    holds no step (or, for a mean, no finite value)."""
     segment = values[w.first_step: w.last_step + 1]
     if not segment.size:
         return float("nan")
@@ -192,35 +215,56 @@ def window_value(metric: str, values: np.ndarray, w: Window) -> float:
         return float(np.nanmean(segment))
 
 
-def summary_rows(variants: Mapping[str, tuple[str, dict[str, np.ndarray]]], estimates: Mapping[str, TrackEstimate],
-                 windows: Sequence[Window], reference_key: str | None, runs: int,
-                 reached: tuple[str, int, int] | None = None, count_windows: Sequence[Window] = ()
-                 ) -> pl.DataFrame:
+SUMMARY_SCHEMA = {"variant": pl.String, "variant_key": pl.String, "series": pl.String, "window": pl.String,
+                  "value": pl.Float64, "unit": pl.String, "n_runs": pl.Int32}
+INTERVAL_SCHEMA = {"n_valid_runs": pl.Int32, "standard_error": pl.Float64, "ci_low": pl.Float64,
+                   "ci_high": pl.Float64, "interval": pl.String}
+
+
+def summary_row(key: str, display: str, series: str, window: str | None, value: float | None, runs: int,
+                statistic: WindowStatistic | None = None) -> dict:
+    """One summary row; with ``statistic`` (how the value comes from the runs) it gets an interval, and
+    its value is the statistic's."""
+    if statistic is not None:
+        value = statistic.value()
+    return {"variant": display, "variant_key": key, "series": series, "window": window,
+            "value": None if value is None else float(value), "unit": unit_of(series), "n_runs": runs,
+            "statistic": statistic}
+
+
+def summary_rows(variants: Mapping[str, tuple[str, Mapping[str, RunValues | np.ndarray]]],
+                 estimates: Mapping[str, TrackEstimate], windows: Sequence[Window], reference_key: str | None,
+                 runs: int, reached: tuple[str, int, int] | None = None, count_windows: Sequence[Window] = ()
+                 ) -> list[dict]:
     """Per variant: each per-step metric over each window (averaged; counts summed: the registry's
     aggregation, pipeline.metrics), the count metrics also over each of ``count_windows``, compute
     time, models per step (and both as % of the reference variant), and optionally the fraction of
-    runs reaching a group. Units come from the metric registry."""
+    runs reaching a group. Units come from the metric registry. Rows of metrics kept per run carry
+    their ``statistic`` (``summary_table`` turns them into intervals)."""
     rows: list[dict] = []
 
-    def add(key, display, metric, window, value):
-        rows.append({"variant": display, "variant_key": key, "series": metric, "window": window,
-                     "value": None if value is None else float(value), "unit": unit_of(metric),
-                     "n_runs": runs})
+    def add(key, display, metric, window, values, w: Window | None = None):
+        if isinstance(values, RunValues):
+            rows.append(summary_row(key, display, metric, window, None, runs, window_statistic(metric, values, w)))
+        else:
+            value = window_value(metric, values, w) if w is not None else values
+            rows.append(summary_row(key, display, metric, window, value, runs))
 
     for key, (display, metrics) in variants.items():
         for w in windows:
             for metric, values in metrics.items():
-                add(key, display, metric, w.name, window_value(metric, values, w))
+                add(key, display, metric, w.name, values, w)
         for w in count_windows:
             for metric, values in metrics.items():
                 if is_count(metric):
-                    add(key, display, metric, w.name, window_value(metric, values, w))
+                    add(key, display, metric, w.name, values, w)
         add(key, display, "compute_seconds", None, estimates[key].compute_seconds)
         if reached is not None:
             name, group, by_step = reached
             fraction = group_reached(estimates[key], group, by_step)
             if fraction is not None:
-                add(key, display, "group_reached_fraction", f"{name} by step {by_step}", fraction)
+                add(key, display, "group_reached_fraction", f"{name} by step {by_step}",
+                    RunValues(fraction[:, None], "mean"), Window("", 0, 0))
     if reference_key is not None and reference_key in variants:
         ref_time = estimates[reference_key].compute_seconds
         ref_models = {w.name: _models_per_step(variants[reference_key][1], w) for w in windows}
@@ -231,11 +275,77 @@ def summary_rows(variants: Mapping[str, tuple[str, dict[str, np.ndarray]]], esti
                 ref = ref_models[w.name]
                 if mine is not None and ref is not None and np.isfinite(mine) and np.isfinite(ref) and ref:
                     add(key, display, "models_pct_of_reference", w.name, 100.0 * mine / ref)
-    return pl.DataFrame(rows, schema={"variant": pl.String, "variant_key": pl.String, "series": pl.String,
-                                      "window": pl.String, "value": pl.Float64, "unit": pl.String,
-                                      "n_runs": pl.Int32})
+    return rows
 
 
-def _models_per_step(metrics: Mapping[str, np.ndarray], w: Window) -> float | None:
+def _models_per_step(metrics: Mapping[str, RunValues | np.ndarray], w: Window) -> float | None:
     values = metrics.get("models_evaluated")
-    return None if values is None else window_value("models_evaluated", values, w)
+    if values is None:
+        return None
+    if isinstance(values, RunValues):
+        return window_statistic("models_evaluated", values, w).value()
+    return window_value("models_evaluated", values, w)
+
+
+def summary_table(rows: Sequence[dict], reference_key: str | None, seed: int, confidence: float = CONFIDENCE,
+                  resamples: int = RESAMPLES) -> tuple[pl.DataFrame, pl.DataFrame, pl.DataFrame]:
+    """(summary, comparisons, per-run) tables from summary rows (``summary_row``).
+
+    summary: each row with ``n_valid_runs``, ``standard_error``, ``ci_low``, ``ci_high`` and the
+    ``interval`` method (pipeline.uncertainty); null for a value not estimated from runs (compute
+    time, a bound, a study's value without per-run data). ``models_pct_of_reference`` gets the
+    interval of the paired ratio of models per step (x 100).
+    comparisons: each variant against ``reference_key`` per series and window (pipeline.uncertainty).
+    per-run: run x variant x series x window, each run's own value (``WindowStatistic.per_run``).
+    """
+    estimated = [Estimated(r["variant_key"], r["series"], r["window"], r["statistic"])
+                 for r in rows if r.get("statistic") is not None]
+    intervals, comparisons = summarize(estimated, reference_key, seed, confidence, resamples)
+    by_row: dict[int, Interval] = {}
+    j = 0
+    for i, r in enumerate(rows):
+        if r.get("statistic") is not None:
+            by_row[i] = intervals[j]
+            j += 1
+    ratio = {(c["variant_key"], c["window"]): c for c in comparisons if c["series"] == "models_evaluated"}
+    records = []
+    for i, r in enumerate(rows):
+        record = {k: v for k, v in r.items() if k != "statistic"}
+        interval = by_row.get(i)
+        if interval is not None:
+            record |= {"n_valid_runs": interval.n_valid_runs, "standard_error": interval.standard_error,
+                       "ci_low": interval.low, "ci_high": interval.high, "interval": interval.method}
+        elif r["series"] == "models_pct_of_reference" and (r["variant_key"], r["window"]) in ratio:
+            c = ratio[(r["variant_key"], r["window"])]
+            record |= {"n_valid_runs": c["n_paired_runs"], "standard_error": None,
+                       "ci_low": 100 * c["ratio_low"], "ci_high": 100 * c["ratio_high"],
+                       "interval": "bootstrap BCa (paired ratio)"}
+        elif r["series"] == "models_pct_of_reference" and r["variant_key"] == reference_key:
+            record |= {"n_valid_runs": None, "standard_error": 0.0, "ci_low": r["value"], "ci_high": r["value"],
+                       "interval": "constant"}
+        records.append(record)
+    summary = pl.DataFrame(records, schema=SUMMARY_SCHEMA | INTERVAL_SCHEMA)
+    summary = summary.with_columns(pl.col(c).fill_nan(None) for c in ("value", "standard_error", "ci_low", "ci_high"))
+    compared = pl.DataFrame(comparisons, schema=comparisons_schema()).with_columns(
+        pl.col(pl.Float64).fill_nan(None))
+    per_run = per_run_table(rows)
+    return summary, compared, per_run
+
+
+def per_run_table(rows: Sequence[dict]) -> pl.DataFrame:
+    """run x variant x series x window: each run's own value of every summary statistic."""
+    parts = []
+    for r in rows:
+        statistic = r.get("statistic")
+        if statistic is None:
+            continue
+        values = statistic.per_run()
+        parts.append(pl.DataFrame({"run": np.arange(values.size, dtype=np.int32), "value": values.astype(float)})
+                     .with_columns(pl.lit(r["variant"]).alias("variant"), pl.lit(r["variant_key"]).alias("variant_key"),
+                                   pl.lit(r["series"]).alias("series"),
+                                   pl.lit(r["window"], dtype=pl.String).alias("window")))
+    if not parts:
+        return pl.DataFrame(schema={"run": pl.Int32, "variant": pl.String, "variant_key": pl.String,
+                                    "series": pl.String, "window": pl.String, "value": pl.Float64})
+    return (pl.concat(parts).select("run", "variant", "variant_key", "series", "window", "value")
+            .with_columns(pl.col("value").fill_nan(None)))

@@ -59,7 +59,8 @@ def recompute(run_dir: Path) -> tuple[pl.DataFrame, pl.DataFrame]:
         estimates[v] = prepared.study.estimate_from_frame(df, {k: str(x) for k, x in meta.items()})
         display[v] = str(getattr(prepared.estimators[v], "name", v))
         faults[v] = fault_summary(flags_from_table(df, runs, steps))
-    return evaluate_stage(cfg, prepared.study, prepared.sensor, truth, estimates, display, faults, runs)
+    evaluated = evaluate_stage(cfg, prepared.study, prepared.sensor, truth, estimates, display, faults, runs)
+    return evaluated.metrics, evaluated.summary
 
 
 def differences(stored: pl.DataFrame, recomputed: pl.DataFrame, key: list[str], columns: list[str]) -> list[str]:
@@ -97,7 +98,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     stored_summary = pl.read_parquet(Path(args.run) / "summary.parquet")
     # compute time is measured, not recomputed: it comes back from the estimates' metadata
     report = {"metrics.parquet": differences(stored_metrics, metrics, METRICS_KEY, ["variant", "time", "value", "n_runs"]),
-              "summary.parquet": differences(stored_summary, summary, SUMMARY_KEY, ["variant", "value", "unit", "n_runs"])}
+              "summary.parquet": differences(stored_summary, summary, SUMMARY_KEY, ["variant", "value", "unit", "n_runs", "n_valid_runs",
+                                                                                   "standard_error", "ci_low", "ci_high", "interval"])}
     for name, problems in report.items():
         rows = (metrics if name.startswith("metrics") else summary).height
         print(f"{name}: {rows} rows recomputed, " + ("equal to the stored table bit for bit" if not problems

@@ -27,7 +27,9 @@ from pipeline import schemas
 from pipeline.contract import RecordingInputs, Study
 from pipeline.config import build, flatten, selected_variants, validate
 from pipeline.errors import ConfigError
-from pipeline.evaluate import Window, metrics_frame, summary_rows
+from pipeline.evaluate import Window, metrics_frame, summary_row, summary_rows, summary_table
+from pipeline.evaluate import resolved as per_step_values
+from pipeline.uncertainty import CONFIDENCE, RESAMPLES
 from pipeline.faults import FaultChecks, fault_summary
 from pipeline.memory import check as check_memory
 from pipeline.metrics import unit_of, with_breakdown
@@ -64,6 +66,7 @@ class RunOutcome:
     summary: pl.DataFrame
     metrics: pl.DataFrame
     table: str
+    comparisons: pl.DataFrame | None = None
 
 
 def _now() -> str:
@@ -387,7 +390,8 @@ def run_experiment(cfg: DictConfig, ctx: RunContext) -> RunOutcome:
                         ", ".join(f"{name[len('fault_runs_'):]}: {count}" for name, count in faults[v].items()
                                   if name.startswith("fault_runs_") and count), v)
     started = time.perf_counter()
-    metrics, summary = evaluate_stage(cfg, study, sensor, truth, estimates, display, faults, runs)
+    evaluated = evaluate_stage(cfg, study, sensor, truth, estimates, display, faults, runs)
+    metrics, summary = evaluated.metrics, evaluated.summary
     summary = summary.with_columns(pl.col("variant_key").replace_strict(
         {v: cached[f"estimates/{v}"] for v in variants}, return_dtype=pl.Boolean).alias("estimates_from_cache"))
     metrics = _provenance(metrics, ctx, experiment, config_hash)
@@ -397,6 +401,11 @@ def run_experiment(cfg: DictConfig, ctx: RunContext) -> RunOutcome:
                          {**schemas.table_metadata("metrics", {}, {"value": "see summary units"}), **provenance})
     atomic_write_parquet(summary, ctx.run_dir / "summary.parquet",
                          {**schemas.table_metadata("summary", {}, {}), **provenance})
+    atomic_write_parquet(_provenance(evaluated.comparisons, ctx, experiment, config_hash),
+                         ctx.run_dir / "comparisons.parquet",
+                         {**schemas.table_metadata("comparisons", {}, {}), **provenance})
+    atomic_write_parquet(_provenance(evaluated.per_run, ctx, experiment, config_hash),
+                         ctx.run_dir / "per_run.parquet", {**schemas.table_metadata("per_run", {}, {}), **provenance})
     log.info("[evaluate] metrics for %d variants x %d steps, %.2f s", len(variants), K, time.perf_counter() - started)
 
     if cfg.record.enabled:
@@ -409,21 +418,31 @@ def run_experiment(cfg: DictConfig, ctx: RunContext) -> RunOutcome:
             seed=seed, config_text=OmegaConf.to_yaml(cfg, resolve=True), description=str(cfg.get("description", ""))))
         log.info("[record] recording.rrd (runs %s), %.2f s", record_runs, time.perf_counter() - started)
 
-    text = format_summary(summary, experiment, runs)
+    text = format_summary(summary, experiment, runs, evaluated.comparisons)
     if report_tables:
         report_ctx = ReportContext(experiment, runs, display, metrics, summary)
         text += "".join(f"\n\n{table.render(report_ctx)}" for table in report_tables.values())
     atomic_write_text(text + "\n", ctx.run_dir / "report.txt")
     write_status(ctx, experiment, "ok", config_hash=config_hash, runs=runs)
     log.info("done in %.2f s", time.perf_counter() - total_started)
-    return RunOutcome(summary, metrics, text)
+    return RunOutcome(summary, metrics, text, evaluated.comparisons)
+
+
+@dataclass(frozen=True)
+class Evaluated:
+    """The evaluate stage's tables (pipeline.evaluate): per-step ``metrics``, the ``summary`` with its
+    intervals, the paired ``comparisons`` with the reference variant, and each run's own values
+    (``per_run``)."""
+    metrics: pl.DataFrame
+    summary: pl.DataFrame
+    comparisons: pl.DataFrame
+    per_run: pl.DataFrame
 
 
 def evaluate_stage(cfg: DictConfig, study: Study, sensor: Any, truth: Any, estimates: dict[str, Any],
-                   display: dict[str, str], faults: dict[str, dict[str, int]], runs: int
-                   ) -> tuple[pl.DataFrame, pl.DataFrame]:
-    """(per-step metrics, summary) of every variant, from the truth, the estimates as their tables hold
-    them, the fault counts of their tables, and the built sensor and study: the run computes it, and
+                   display: dict[str, str], faults: dict[str, dict[str, int]], runs: int) -> Evaluated:
+    """The evaluate stage's tables of every variant, from the truth, the estimates as their tables hold
+    them, the fault counts of their tables, and the built sensor and study: the run computes them, and
     ``python -m pipeline.recompute`` recomputes a stored run's from its files alone."""
     from filters.bounds import SingularBoundWarning
     with warnings.catch_warnings(record=True) as caught:
@@ -439,8 +458,7 @@ def evaluate_stage(cfg: DictConfig, study: Study, sensor: Any, truth: Any, estim
 
 
 def _evaluate(cfg: DictConfig, study: Study, sensor: Any, truth: Any, estimates: dict[str, Any],
-              display: dict[str, str], faults: dict[str, dict[str, int]], runs: int
-              ) -> tuple[pl.DataFrame, pl.DataFrame]:
+              display: dict[str, str], faults: dict[str, dict[str, int]], runs: int) -> Evaluated:
     variants = list(estimates)
     K = truth.time.size
     per_variant = {v: (display[v], study.per_step_metrics(truth, estimates[v], sensor)) for v in variants}
@@ -451,16 +469,21 @@ def _evaluate(cfg: DictConfig, study: Study, sensor: Any, truth: Any, estimates:
     if gr:
         reached = (str(gr.group), list(cfg.models.groups.keys()).index(gr.group), int(gr.by_step))
     ref = cfg.metrics.get("reference_variant")
-    summary = summary_rows(per_variant, estimates, windows, ref if ref in variants else None, runs, reached,
-                           count_windows)
-    rows = study.extra_summary(truth, estimates, display, runs, ref if ref in variants else None, sensor, per_variant)
-    if rows:
-        summary = pl.concat([summary, pl.DataFrame(rows, schema=summary.schema)])
-    fault_rows = [{"variant": display[v], "variant_key": v, "series": name, "window": None, "value": float(count),
-                   "unit": unit_of(name), "n_runs": runs} for v in variants for name, count in faults[v].items()]
-    summary = pl.concat([summary, pl.DataFrame(fault_rows, schema=summary.schema)])
+    ref = ref if ref in variants else None
+    rows = summary_rows(per_variant, estimates, windows, ref, runs, reached, count_windows)
+    # a study's own rows read the per-step values (a RunValues resolved to its value over the runs)
+    per_step = {v: (name, per_step_values(metrics)) for v, (name, metrics) in per_variant.items()}
+    rows += [row if "statistic" in row else row | {"statistic": None}
+             for row in study.extra_summary(truth, estimates, display, runs, ref, sensor, per_step)]
+    rows += [summary_row(v, display[v], name, None, float(count), runs) for v in variants
+             for name, count in faults[v].items()]
+    uncertainty = cfg.get("uncertainty") or {}
+    summary, comparisons, per_run = summary_table(
+        rows, ref, int(cfg.mc.seed), float(uncertainty.get("confidence", CONFIDENCE)),
+        int(uncertainty.get("bootstrap_resamples", RESAMPLES)))
     # the tidy columns metric (the quantity), component, sensor, target (pipeline.metrics.breakdown)
-    return with_breakdown(metrics_frame(truth.time, per_variant, runs)), with_breakdown(summary)
+    return Evaluated(with_breakdown(metrics_frame(truth.time, per_variant, runs)), with_breakdown(summary),
+                     with_breakdown(comparisons), with_breakdown(per_run))
 
 
 def build_fault_checks(cfg: DictConfig) -> FaultChecks:

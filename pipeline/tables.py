@@ -21,13 +21,19 @@ import polars as pl
 
 from pipeline.metrics import format_value, printed_columns
 
-def format_summary(summary: pl.DataFrame, experiment: str, runs: int) -> str:
-    """Variant x metric table, one block per window (window-free metrics shown in every block)."""
+def format_summary(summary: pl.DataFrame, experiment: str, runs: int,
+                   comparisons: pl.DataFrame | None = None) -> str:
+    """Variant x metric table, one block per window (window-free metrics shown in every block). A value
+    with an interval (the summary's ci_low / ci_high) prints as ``value ± half its width``; with
+    ``comparisons`` (pipeline.uncertainty), the paired differences with the reference variant follow."""
     shown = {m for m, _ in printed_columns(set(summary["series"].unique().to_list()))}
     windows = [w for w in summary.filter(pl.col("series").is_in(shown))["window"].unique(maintain_order=True).to_list()
                if w is not None and " by step " not in w]
     variants = summary["variant"].unique(maintain_order=True).to_list()
+    with_intervals = {"ci_low", "ci_high"} <= set(summary.columns)
     lines = [f"{experiment}: {runs} Monte Carlo runs"]
+    if with_intervals:
+        lines.append("value ± half its 95 % interval over the runs (summary.parquet: ci_low, ci_high)")
     for window in windows or [None]:
         in_window = pl.lit(False) if window is None else pl.col("window") == window
         rows = summary.filter(pl.col("window").is_null() | in_window | pl.col("window").str.contains(" by step "))
@@ -37,17 +43,70 @@ def format_summary(summary: pl.DataFrame, experiment: str, runs: int) -> str:
         for v in variants:
             row = [v]
             for m, _ in cols:
-                hit = rows.filter((pl.col("variant") == v) & (pl.col("series") == m))["value"]
-                row.append("" if hit.len() == 0 or hit[0] is None else format_value(m, hit[0]))
+                hit = rows.filter((pl.col("variant") == v) & (pl.col("series") == m))
+                if hit.height == 0 or hit["value"][0] is None:
+                    row.append("")
+                    continue
+                text = format_value(m, hit["value"][0])
+                if with_intervals and hit["ci_low"][0] is not None and hit["ci_high"][0] is not None:
+                    text += f" ± {_like(text, (hit['ci_high'][0] - hit['ci_low'][0]) / 2)}"
+                row.append(text)
             table.append(row)
-        widths = [max(len(r[i]) for r in table) for i in range(len(header))]
-        lines.append("")
-        lines.append(f"window: {window}" if window else "")
-        for i, r in enumerate(table):
-            lines.append("  ".join(c.ljust(widths[j]) if j == 0 else c.rjust(widths[j]) for j, c in enumerate(r)))
-            if i == 0:
-                lines.append("  ".join("-" * w for w in widths))
+        lines += _block(table, f"window: {window}" if window else "")
+    if comparisons is not None and comparisons.height:
+        lines += format_comparisons(comparisons, summary)
     return "\n".join(lines)
+
+
+def format_comparisons(comparisons: pl.DataFrame, summary: pl.DataFrame) -> list[str]:
+    """Each variant minus the reference on the printed metrics, per window, paired over the runs."""
+    names = dict(zip(summary["variant_key"].to_list(), summary["variant"].to_list()))
+    reference = names.get(comparisons["reference_key"][0], comparisons["reference_key"][0])
+    lines = ["", f"paired with {reference} over the same runs: difference ± half its 95 % interval; "
+                 f"* = resolved (the interval excludes 0)"]
+    shown = dict(printed_columns(set(comparisons["series"].to_list())))
+    for window in comparisons["window"].unique(maintain_order=True).to_list():
+        if window is None or " by step " in window:
+            continue
+        part = comparisons.filter(pl.col("window") == window)
+        cols = [(m, label) for m, label in shown.items() if m in set(part["series"].to_list())]
+        if not cols:
+            continue
+        table = [["variant"] + [label for _, label in cols]]
+        for key in part["variant_key"].unique(maintain_order=True).to_list():
+            row = [names.get(key, key)]
+            for m, _ in cols:
+                hit = part.filter((pl.col("variant_key") == key) & (pl.col("series") == m))
+                if hit.height == 0 or hit["difference"][0] is None:
+                    row.append("")
+                    continue
+                text = "+" + format_value(m, hit["difference"][0]) if hit["difference"][0] >= 0 \
+                    else format_value(m, hit["difference"][0])
+                low, high = hit["difference_low"][0], hit["difference_high"][0]
+                if low is not None and high is not None:
+                    text += f" ± {_like(text, (high - low) / 2)}" + (" *" if hit["resolved"][0] else "  ")
+                row.append(text)
+            table.append(row)
+        lines += _block(table, f"window: {window}")
+    return lines
+
+
+def _block(table: list[list[str]], title: str) -> list[str]:
+    header = table[0]
+    widths = [max(len(r[i]) for r in table) for i in range(len(header))]
+    lines = ["", title]
+    for i, r in enumerate(table):
+        lines.append("  ".join(c.ljust(widths[j]) if j == 0 else c.rjust(widths[j]) for j, c in enumerate(r)))
+        if i == 0:
+            lines.append("  ".join("-" * w for w in widths))
+    return lines
+
+
+def _like(printed: str, value: float) -> str:
+    """``value`` with as many decimals as ``printed`` (a half-width beside its value)."""
+    number = printed.split()[0].lstrip("+")
+    decimals = len(number.split(".")[1]) if "." in number else 0
+    return f"{value:.{decimals}f}"
 
 
 # ---- study-specific tables ---------------------------------------------------------------------

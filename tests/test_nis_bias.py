@@ -19,6 +19,7 @@ from filters.bias import (
 from pipeline.data import Detections, Truth
 from pipeline.studies.async_bias.adapter import BiasRegistrationStudy, bias_metric_units, bias_study_metrics, target_mean_nis
 from pipeline.studies.async_bias import codec as bias_codec
+from pipeline.evaluate import resolved
 
 POSITIONS = np.array([[0.0, 0.0], [10_000.0, 0.0]])
 NOISE_STD = np.array([[10.0, 1e-3], [10.0, 1e-3]])
@@ -141,7 +142,7 @@ def test_zero_bias_nis_lies_in_its_band_at_most_reports():
     X, reports = simulate(runs=100, targets=8, reports=160, seed=0)
     result = LocalTracking(output_targets=[1]).run(reports)
     truth = Truth(np.arange(161) * 0.5, X, ("x", "y", "vx", "vy"))
-    metrics = bias_study_metrics(truth, result, np.zeros(8))
+    metrics = resolved(bias_study_metrics(truth, result, np.zeros(8)))
     rates = []
     for n in (1, 2):
         steps = np.nonzero(np.isfinite(metrics[f"nis_s{n}"]))[0]
@@ -164,7 +165,7 @@ def _study_case(runs=3, targets=4, reports=20):
 @pytest.mark.parametrize("variant", VARIANTS, ids=lambda c: c.__name__)
 def test_every_variant_has_per_radar_nis_metrics_with_units(variant):
     truth, reports = _study_case()
-    metrics = bias_study_metrics(truth, variant(output_targets=[1, 4]).run(reports), np.tile(BETA, 2))
+    metrics = resolved(bias_study_metrics(truth, variant(output_targets=[1, 4]).run(reports), np.tile(BETA, 2)))
     for n in (1, 2):
         mine = np.nonzero(reports.sensor == n - 1)[0] + 1                 # truth steps of radar n's reports
         for part in ("", "_lower", "_upper"):

@@ -12,6 +12,7 @@ from hydra import compose, initialize_config_dir
 
 from pipeline.config import build
 from tests.conftest import CONF
+from pipeline.evaluate import resolved
 
 
 def _run(experiment: str, runs: int, variants, *overrides: str):
@@ -27,7 +28,7 @@ def _metrics(cfg, study, truth, reports, sensor, variants):
     out = {}
     for key in variants:
         estimate = build(cfg.filters[key], f"filters.{key}").run(reports)
-        metrics = study.per_step_metrics(truth, estimate, sensor)
+        metrics = resolved(study.per_step_metrics(truth, estimate, sensor))
         metrics["final_error"] = np.linalg.norm(estimate.state[:, -1, :2] - truth.state[:, -1, 0, :2], axis=-1)
         out[key] = metrics
     return out

@@ -452,10 +452,11 @@ def test_study_001_printed_table_is_unchanged(tmp_path):
     df = pl.DataFrame(rows, schema=["variant", "variant_key", "series", "window", "value"], orient="row")
     assert format_summary(df, "ao_vsimm_s2", 7) == GOLDEN_001
 
-    # a real study-001 run: the same metrics and windows as before, and nothing after the summary
+    # a real study-001 run: the same metrics and windows as before, and after the summary only the
+    # paired comparisons with the reference variant
     from tests.test_pipeline import run_in_process
     out, ctx = run_in_process(tmp_path, "s1", "mc.runs=2", "scenario.steps=30")
-    assert out.table == format_summary(out.summary, "ao_vsimm_s1", 2)
+    assert out.table == format_summary(out.summary, "ao_vsimm_s1", 2, out.comparisons)
     assert set(out.metrics["series"]) == {"acceleration_rmse_x", "acceleration_rmse_y", "position_rmse",
                                           "velocity_rmse", "nees", "nees_lower", "nees_upper", "models_evaluated",
                                           "nis", "nis_lower", "nis_upper", "position_bound",

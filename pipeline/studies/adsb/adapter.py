@@ -27,7 +27,8 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from pipeline.evaluate import consistency_metrics
+from pipeline.evaluate import consistency, summary_row
+from pipeline.uncertainty import RunValues, WindowStatistic
 from pipeline.metrics import BAND, Metric, nees, register, unit_of
 from pipeline.studies.adsb.flight import MANEUVER_NAMES
 from pipeline.track import SingleTargetStudy
@@ -99,7 +100,7 @@ class FlightStudy(SingleTargetStudy):
         index = [truth.state_names.index(n) for n in POSITION_VELOCITY if n in truth.state_names]
         error = estimate.state[..., index] - truth.state[:, :, 0, index]
         covariance = estimate.covariance[..., index, :][..., :, index]
-        out.update(consistency_metrics("nees_position_velocity", nees(error, covariance), len(index)))
+        out.update(consistency("nees_position_velocity", nees(error, covariance), len(index)))
         return out
 
     def extra_summary(self, truth, estimates: Mapping[str, Any], display: Mapping[str, str], runs: int,
@@ -128,9 +129,10 @@ class FlightStudy(SingleTargetStudy):
                 scans = counted & (labels == code)
                 add(key, f"scans_{name}", float(scans.sum()))
                 for quantity, values in squared.items():
-                    chosen = values[:, scans]
-                    finite = chosen[np.isfinite(chosen)]
-                    add(key, f"{quantity}_rmse_{name}", float(np.sqrt(finite.mean())) if finite.size else None)
+                    # pooled over the runs and the class's scans (None when the flight has none)
+                    statistic = WindowStatistic(RunValues(values, "rms"), np.nonzero(scans)[0], "pool")
+                    rows.append(summary_row(key, display[key], f"{quantity}_rmse_{name}", None, None, runs,
+                                            statistic if scans.any() else None))
             metrics = per_variant[key][1]
             mean, lower, upper = (metrics[f"nees_position_velocity{s}"][counted] for s in ("", "_lower", "_upper"))
             valid = np.isfinite(mean)

@@ -29,7 +29,8 @@ from pipeline.studies.async_bias.codec import bias_estimates_from_frame, bias_es
 from pipeline.data import Detections, Truth
 from pipeline.errors import ConfigError
 from pipeline.seeding import run_generators
-from pipeline.evaluate import quiet_nanmean, consistency_metrics
+from pipeline.evaluate import consistency, consistency_metrics, quiet_nanmean
+from pipeline.uncertainty import RunValues
 
 
 class BiasRegistrationStudy(Study):
@@ -150,35 +151,38 @@ def _steps(truth_time: np.ndarray, times: np.ndarray) -> np.ndarray:
     return index
 
 
-def bias_study_metrics(truth: Truth, result: BiasRegistrationResult, true_bias: np.ndarray) -> dict[str, np.ndarray]:
-    """Per-step metrics (K_truth,) of one variant; see the module docstring for the names."""
+def bias_study_metrics(truth: Truth, result: BiasRegistrationResult, true_bias: np.ndarray
+                       ) -> dict[str, RunValues | np.ndarray]:
+    """Metrics of one variant on the truth's grid (K_truth steps), kept per run; see the module
+    docstring for the names."""
     Kt = truth.time.size
     steps = _steps(truth.time, result.time)
     S = true_bias.size // 4
-    out: dict[str, np.ndarray] = {}
+    out: dict[str, RunValues | np.ndarray] = {}
 
     def on_grid(values: np.ndarray, at: np.ndarray | None = None, prior: float | None = None) -> np.ndarray:
-        grid = np.full(Kt, np.nan)
-        grid[steps if at is None else steps[at]] = values
+        """(K,) or (R, K) values at the reports -> on the truth's grid (NaN between reports)."""
+        grid = np.full(values.shape[:-1] + (Kt,), np.nan)
+        grid[..., steps if at is None else steps[at]] = values
         if prior is not None and steps.size and steps[0] > 0:
-            grid[: steps[0]] = prior
+            grid[..., : steps[0]] = prior
         return grid
 
     with np.errstate(invalid="ignore"), quiet_nanmean():
         if np.isfinite(result.bias).any():
             err = result.bias - true_bias                                   # (R, K, 4S)
-            rmse = np.sqrt(np.mean(err**2, axis=0))
             for s in range(S):
                 for c, name in enumerate(BIAS_NAMES):
                     j = 4 * s + c
                     # before the first report the estimate is the prior mean 0
-                    out[f"bias_rmse_{name}_s{s + 1}"] = on_grid(rmse[:, j], prior=abs(true_bias[j]))
-            band = consistency_metrics("bias_nees", nees(err, result.bias_covariance), err.shape[-1])
-            out.update({name: on_grid(values) for name, values in band.items()})          # 95 % band, 4S dof
+                    out[f"bias_rmse_{name}_s{s + 1}"] = RunValues(on_grid(err[..., j] ** 2, prior=true_bias[j] ** 2), "rms")
+            band = consistency("bias_nees", nees(err, result.bias_covariance), err.shape[-1])    # 95 % band, 4S dof
+            out.update({name: on_grid(values) for name, values in band.items() if not isinstance(values, RunValues)})
+            out["bias_nees"] = RunValues(on_grid(band["bias_nees"].values), "mean")
             for s in range(S):
                 block = slice(4 * s, 4 * s + 4)
-                out[f"bias_nees_s{s + 1}"] = on_grid(
-                    np.mean(nees(err[..., block], result.bias_covariance[..., block, block]), axis=0))
+                out[f"bias_nees_s{s + 1}"] = RunValues(
+                    on_grid(nees(err[..., block], result.bias_covariance[..., block, block])), "mean")
         truth_at = truth.state[:, steps][:, :, result.targets]              # (R, K, Tsel, 4)
         for s in range(S):
             mine = np.nonzero(result.sensor == s)[0]
@@ -189,17 +193,20 @@ def bias_study_metrics(truth: Truth, result: BiasRegistrationResult, true_bias: 
                 true_state = truth_at[:, mine, col]
                 for kind, state in (("", result.track_state), ("_compensated", result.compensated_state)):
                     e = state[:, mine, col] - true_state
-                    out[f"position_rmse_{label}{kind}"] = on_grid(np.sqrt(np.nanmean(np.sum(e[..., :2]**2, -1), 0)), mine)
-                    out[f"velocity_rmse_{label}{kind}"] = on_grid(np.sqrt(np.nanmean(np.sum(e[..., 2:]**2, -1), 0)), mine)
+                    out[f"position_rmse_{label}{kind}"] = RunValues(on_grid(np.sum(e[..., :2]**2, -1), mine), "rms")
+                    out[f"velocity_rmse_{label}{kind}"] = RunValues(on_grid(np.sum(e[..., 2:]**2, -1), mine), "rms")
                 e = result.compensated_state[:, mine, col] - true_state
-                out[f"track_nees_{label}_compensated"] = on_grid(
-                    np.nanmean(nees(e, result.compensated_covariance[:, mine, col]), axis=0), mine)
+                out[f"track_nees_{label}_compensated"] = RunValues(
+                    on_grid(nees(e, result.compensated_covariance[:, mine, col]), mine), "mean")
         if result.nis is not None and result.nis_dof is not None:
             for s in range(S):
                 mine = np.nonzero(result.sensor == s)[0]
                 if mine.size:
                     band = target_mean_nis(f"nis_s{s + 1}", result.nis[:, mine], result.nis_dof[:, mine])
                     out.update({name: on_grid(values, mine) for name, values in band.items()})
+                    # the per-target mean kept per run: each run's NIS sum over its targets, weighed by them
+                    out[f"nis_s{s + 1}"] = RunValues(on_grid(result.nis[:, mine], mine), "mean",
+                                                     weights=on_grid(result.nis_dof[:, mine] / 2.0, mine))
     return out
 
 

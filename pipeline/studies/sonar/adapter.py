@@ -26,7 +26,8 @@ from pipeline.metrics import Metric, register, unit_of
 from pipeline.data import Detections, Truth
 from pipeline.errors import ConfigError
 from pipeline.bounds import PerTruth
-from pipeline.evaluate import quiet_nanmean, per_step_metrics
+from pipeline.evaluate import per_step_metrics, quiet_nanmean, summary_row
+from pipeline.uncertainty import RunValues, WindowStatistic
 
 register(
     Metric("position_rmse_x", "m", quantity="position_rmse", component="x"),
@@ -97,15 +98,14 @@ class SonarStudy(Study):
     def per_step_metrics(self, truth: Truth, estimate, sensor) -> dict[str, np.ndarray]:
         out = per_step_metrics(truth, estimate)
         err = estimate.state[..., :2] - truth.state[:, :, 0, :2]
-        with np.errstate(invalid="ignore"), quiet_nanmean():
-            out["position_rmse_x"] = np.sqrt(np.nanmean(err[..., 0] ** 2, axis=0))
-            out["position_rmse_y"] = np.sqrt(np.nanmean(err[..., 1] ** 2, axis=0))
-            if self.bound_model is not None:
-                bound = self.position_bound(truth, sensor)
-                out["position_bound"] = bound
-                out["position_rmse_over_bound"] = out["position_rmse"] / bound
-                out["position_bound_model"] = self.position_bound(truth, sensor, "model")
-                out["position_rmse_over_bound_model"] = out["position_rmse"] / out["position_bound_model"]
+        out["position_rmse_x"] = RunValues(err[..., 0] ** 2, "rms")
+        out["position_rmse_y"] = RunValues(err[..., 1] ** 2, "rms")
+        if self.bound_model is not None:
+            bound = self.position_bound(truth, sensor)
+            out["position_bound"] = bound
+            out["position_rmse_over_bound"] = out["position_rmse"].over(bound)
+            out["position_bound_model"] = self.position_bound(truth, sensor, "model")
+            out["position_rmse_over_bound_model"] = out["position_rmse"].over(out["position_bound_model"])
         return out
 
     def position_bound(self, truth: Truth, sensor, model: str = "clairvoyant") -> np.ndarray:
@@ -151,30 +151,34 @@ class SonarStudy(Study):
         """Table 1 readings and the post-switch peaks (see the module docstring)."""
         rows: list[dict] = []
 
-        def add(key, metric, window, value):
-            rows.append({"variant": display[key], "variant_key": key, "series": metric, "window": window,
-                         "value": None if value is None else float(value), "unit": unit_of(metric), "n_runs": runs})
+        def add(key, metric, window, statistic: WindowStatistic):
+            rows.append(summary_row(key, display[key], metric, window, None, runs, statistic))
 
-        per_run = {}
+        every_step = np.arange(truth.time.size)
+        per_run, squared = {}, {}
         for key, est in estimates.items():
             err = est.state[..., :2] - truth.state[:, :, 0, :2]
+            squared[key] = RunValues(np.sum(err**2, axis=-1), "rms")
+            for axis, name in enumerate("xy"):
+                # pooled over the runs and the steps: the paper's Table 1 reading
+                add(key, f"rmse_{name}", "all", WindowStatistic(RunValues(err[..., axis] ** 2, "rms"), every_step, "pool"))
             with quiet_nanmean():
-                add(key, "rmse_x", "all", np.sqrt(np.nanmean(err[..., 0] ** 2)))
-                add(key, "rmse_y", "all", np.sqrt(np.nanmean(err[..., 1] ** 2)))
                 per_run[key] = np.sqrt(np.nanmean(err**2, axis=1))            # (R, 2)
-            add(key, "median_run_rmse_x", "all", np.median(per_run[key][:, 0]))
-            add(key, "median_run_rmse_y", "all", np.median(per_run[key][:, 1]))
+            for axis, name in enumerate("xy"):
+                add(key, f"median_run_rmse_{name}", "all",
+                    WindowStatistic(RunValues(per_run[key][:, axis:axis + 1], "median"), [0], "mean"))
         if reference in per_run:
             for key in estimates:
-                ratio = per_run[key] / per_run[reference]
-                add(key, "paired_ratio_x", "all", np.median(ratio[:, 0]))
-                add(key, "paired_ratio_y", "all", np.median(ratio[:, 1]))
+                with np.errstate(invalid="ignore", divide="ignore"):
+                    ratio = per_run[key] / per_run[reference]
+                for axis, name in enumerate("xy"):
+                    add(key, f"paired_ratio_{name}", "all",
+                        WindowStatistic(RunValues(ratio[:, axis:axis + 1], "median"), [0], "mean"))
         time = truth.time
         active = np.asarray(sensor.is_active(time), dtype=bool)
         switches = np.nonzero(active[:-1] & ~active[1:])[0] + 1               # first passive scan
-        for key, (_, metrics) in per_variant.items():
-            position = metrics["position_rmse"]
+        for key in per_variant:
             for k in switches:
-                inside = (time >= time[k]) & (time < time[k] + self.bump_window)
-                add(key, "peak_position_rmse", f"after {time[k]:g} s", np.nanmax(position[inside]))
+                inside = np.nonzero((time >= time[k]) & (time < time[k] + self.bump_window))[0]
+                add(key, "peak_position_rmse", f"after {time[k]:g} s", WindowStatistic(squared[key], inside, "max"))
         return rows

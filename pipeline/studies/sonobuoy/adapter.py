@@ -30,7 +30,8 @@ from pipeline.data import Detections, Truth
 from pipeline.errors import ConfigError
 from pipeline.seeding import run_generators
 from pipeline.bounds import PerTruth
-from pipeline.evaluate import quiet_nanmean, consistency_metrics, nis_metrics
+from pipeline.evaluate import consistency, nis_metrics, quiet_nanmean, summary_row
+from pipeline.uncertainty import RunValues, WindowStatistic
 
 register(
     Metric("position_median_error", "m"), Metric("buoy_position_rmse", "m"), Metric("buoy_position_median_error", "m"),
@@ -127,36 +128,33 @@ class SonobuoyStudy(Study):
         buoy_error = (estimate.state[..., 4:] - true[..., 4:]).reshape(error.shape + (4, 4))[..., 0:2]
         out = {}
         with np.errstate(invalid="ignore"), quiet_nanmean():
-            out["position_rmse"] = np.sqrt(np.nanmean(error**2, axis=0))
-            out["position_median_error"] = np.nanmedian(error, axis=0)
+            out["position_rmse"] = RunValues(error**2, "rms")
+            out["position_median_error"] = RunValues(error, "median")
             buoy_distance = np.sqrt(np.sum(buoy_error**2, axis=-1))                       # (R, K, 4)
-            out["buoy_position_rmse"] = np.sqrt(np.nanmean((buoy_distance**2).mean(axis=-1), axis=0))
-            out["buoy_position_median_error"] = np.nanmedian(buoy_distance.reshape(error.shape[0], -1, 4)
-                                                             .transpose(0, 2, 1).reshape(-1, error.shape[1]), axis=0)
+            out["buoy_position_rmse"] = RunValues((buoy_distance**2).mean(axis=-1), "rms")
+            out["buoy_position_median_error"] = RunValues(buoy_distance, "median")       # over runs and buoys
             e = estimate.state[..., 0:2] - true[..., 0:2]
             P = estimate.covariance[..., 0:2, 0:2]
             position_nees = nees(e, P)
             # the run average with its 95 % chi-square band (2 dof per valid run)
-            out.update(consistency_metrics("nees_position", position_nees, 2))
+            out.update(consistency("nees_position", position_nees, 2))
             # the mean is what a consistency check reads, but one collapsed cloud (covariance of
             # centimetres, error of metres) dominates it: the median shows the typical run
-            out["nees_position_median"] = np.nanmedian(position_nees, axis=0)
+            out["nees_position_median"] = RunValues(position_nees, "median")
             extras = estimate.extras
-            out.update(nis_metrics(extras))
+            out.update(nis_metrics(extras, per_run=True))
             if "ess" in extras:
-                out["ess"] = np.nanmean(extras["ess"], axis=0)
+                out["ess"] = RunValues(np.asarray(extras["ess"], dtype=float), "mean")
             if "mode_probabilities" in extras:
                 for m, name in enumerate(MODE_NAMES):
-                    out[f"mode_probability_{name}"] = np.nanmean(extras["mode_probabilities"][..., m], axis=0)
+                    out[f"mode_probability_{name}"] = RunValues(extras["mode_probabilities"][..., m], "mean")
         if self.bound_buoy_sigma is not None:
             bound = self.position_bound(truth, sensor, 0.0)
             out["position_bound"] = bound
-            with np.errstate(invalid="ignore", divide="ignore"):
-                out["position_rmse_over_bound"] = out["position_rmse"] / bound
+            out["position_rmse_over_bound"] = out["position_rmse"].over(bound)
             if self.bound_model_target_sigma is not None:
                 out["position_bound_model"] = self.position_bound(truth, sensor, self.bound_model_target_sigma)
-                with np.errstate(invalid="ignore", divide="ignore"):
-                    out["position_rmse_over_bound_model"] = out["position_rmse"] / out["position_bound_model"]
+                out["position_rmse_over_bound_model"] = out["position_rmse"].over(out["position_bound_model"])
         return out
 
     def position_bound(self, truth: Truth, sensor, target_sigma: float) -> np.ndarray:
@@ -210,20 +208,22 @@ class SonobuoyStudy(Study):
                       sensor, per_variant: dict) -> list[dict]:
         rows = []
 
-        def add(key, metric, window, value):
-            rows.append({"variant": display[key], "variant_key": key, "series": metric, "window": window,
-                         "value": None if value is None else float(value), "unit": unit_of(metric), "n_runs": runs})
+        def add(key, metric, window, statistic: WindowStatistic):
+            rows.append(summary_row(key, display[key], metric, window, None, runs, statistic))
 
         time = truth.time
         for key, est in estimates.items():
             final = np.linalg.norm(est.state[:, -1, 0:2] - truth.state[:, -1, 0, 0:2], axis=-1)
-            add(key, "track_loss_rate", f"final error > {self.loss_threshold:g} m",
-                np.mean(~(final <= self.loss_threshold)))
-            add(key, "final_position_rmse", "final", np.sqrt(np.mean(final**2)))
-            median = per_variant[key][1]["position_median_error"]
+            lost = (~(final <= self.loss_threshold)).astype(float)[:, None]          # a run without an estimate is lost
+            add(key, "track_loss_rate", f"final error > {self.loss_threshold:g} m", WindowStatistic(RunValues(lost, "mean"), [0]))
+            add(key, "final_position_rmse", "final", WindowStatistic(RunValues(final[:, None] ** 2, "rms"), [0]))
+            error = np.linalg.norm(est.state[..., 0:2] - truth.state[:, :, 0, 0:2], axis=-1)
             for name, (t0, t1) in self.peak_windows.items():
-                inside = (time >= t0) & (time <= t1)
-                add(key, "peak_median_error", name, np.nanmax(median[inside]) if inside.any() else None)
+                inside = np.nonzero((time >= t0) & (time <= t1))[0]
+                if inside.size:
+                    add(key, "peak_median_error", name, WindowStatistic(RunValues(error, "median"), inside, "max"))
+                else:
+                    rows.append(summary_row(key, display[key], "peak_median_error", name, None, runs))
         return rows
 
     def record(self, path, inputs: RecordingInputs) -> None:

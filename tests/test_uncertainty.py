@@ -1,0 +1,171 @@
+"""Monte Carlo uncertainty (pipeline/uncertainty.py) against closed forms and scipy.
+
+- a mean over runs: Student's t interval, exactly mean +- t(n-1) s / sqrt(n);
+- 0/1 per run: the exact Clopper-Pearson interval of scipy.stats.binomtest;
+- an RMSE of N(0, sigma^2) errors (a known variance): the bootstrap's standard error is the delta
+  method's sigma / sqrt(2 n), and its intervals cover sigma about 95 % of the time;
+- the BCa interval is scipy.stats.bootstrap's on the same resamples;
+- paired comparisons: a constructed per-run difference is found with its size, an identical variant
+  is not "resolved", and the Wilcoxon p-value is scipy's.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy import stats
+
+from pipeline.uncertainty import (Estimated, RunValues, WindowStatistic, bootstrap_values, runs_to_decide,
+                                  stream_seed, summarize)
+
+
+def one(values: np.ndarray, across: str, series: str = "m", variant: str = "a") -> Estimated:
+    rv = RunValues(np.asarray(values, dtype=float)[:, None] if np.ndim(values) == 1 else values, across)
+    return Estimated(variant, series, "all", WindowStatistic(rv, np.arange(rv.values.shape[1])))
+
+
+def test_a_mean_over_runs_gets_the_t_interval():
+    sample = np.random.default_rng(3).normal(5.0, 2.0, size=40)
+    intervals, _ = summarize([one(sample, "mean")], None, seed=1)
+    got = intervals[0]
+    half = stats.t.ppf(0.975, 39) * sample.std(ddof=1) / np.sqrt(40)
+    assert got.method == "t" and got.n_valid_runs == 40
+    assert got.value == pytest.approx(sample.mean(), rel=1e-12)
+    assert got.low == pytest.approx(sample.mean() - half, rel=1e-12)
+    assert got.high == pytest.approx(sample.mean() + half, rel=1e-12)
+    assert got.standard_error == pytest.approx(sample.std(ddof=1) / np.sqrt(40), rel=1e-12)
+
+
+def test_a_window_mean_of_a_per_step_mean_is_the_mean_of_the_runs_own_means():
+    values = np.random.default_rng(4).normal(size=(30, 8))
+    values[:, :2] = np.nan                                   # the same steps missing in every run
+    row = Estimated("a", "m", "w", WindowStatistic(RunValues(values, "mean"), np.arange(8)))
+    got = summarize([row], None, seed=1)[0][0]
+    own = np.nanmean(values, axis=1)
+    assert got.method == "t"
+    assert got.low == pytest.approx(own.mean() - stats.t.ppf(0.975, 29) * own.std(ddof=1) / np.sqrt(30))
+
+
+def test_runs_valid_at_different_steps_are_bootstrapped_not_averaged():
+    values = np.random.default_rng(5).normal(size=(30, 8))
+    values[0, 3] = np.nan
+    row = Estimated("a", "m", "w", WindowStatistic(RunValues(values, "mean"), np.arange(8)))
+    assert summarize([row], None, seed=1)[0][0].method.startswith("bootstrap")
+
+
+def test_a_fraction_of_runs_gets_the_exact_binomial_interval():
+    lost = np.array([1.0] * 7 + [0.0] * 43)
+    got = summarize([one(lost, "mean")], None, seed=1)[0][0]
+    exact = stats.binomtest(7, 50).proportion_ci(confidence_level=0.95, method="exact")
+    assert got.method == "exact" and got.value == pytest.approx(0.14)
+    assert (got.low, got.high) == pytest.approx((exact.low, exact.high), rel=1e-12)
+
+
+def test_a_count_summed_over_runs_scales_the_interval_by_the_runs():
+    flags = np.zeros((50, 10))
+    flags[:9, 4] = 1.0                                       # 9 of 50 runs detect once
+    row = Estimated("a", "detections", "w", WindowStatistic(RunValues(flags, "sum"), np.arange(10), "sum"))
+    got = summarize([row], None, seed=1)[0][0]
+    exact = stats.binomtest(9, 50).proportion_ci(method="exact")
+    assert got.value == 9.0 and got.method == "exact"
+    assert (got.low, got.high) == pytest.approx((50 * exact.low, 50 * exact.high))
+
+
+def test_the_rmse_of_a_known_variance_has_the_delta_method_error_and_covers_sigma():
+    sigma, runs = 3.0, 200
+    rng = np.random.default_rng(6)
+    covered, errors = 0, []
+    trials = 100
+    for trial in range(trials):
+        squared = (sigma * rng.standard_normal(runs)) ** 2
+        got = summarize([one(squared, "rms")], None, seed=trial, resamples=1000)[0][0]
+        assert got.method == "bootstrap BCa"
+        covered += got.low <= sigma <= got.high
+        errors.append(got.standard_error)
+    # sqrt of a mean of sigma^2 chi2(1) / n: standard error sigma / sqrt(2 n) (delta method)
+    assert np.mean(errors) == pytest.approx(sigma / np.sqrt(2 * runs), rel=0.1)
+    assert 0.88 <= covered / trials <= 1.0
+
+
+def test_bca_is_scipys_on_the_same_resamples():
+    squared = np.random.default_rng(7).gamma(0.7, 2.0, size=60)
+    rv = RunValues(squared[:, None], "rms")
+    statistic = WindowStatistic(rv, [0])
+    seed = stream_seed(11, "check")
+    low, high, se, method = bootstrap_values([(rv, [statistic])], 60, lambda v: np.stack(v), 1, seed, 0.95, 999)
+
+    def rmse(sample, axis=-1):
+        return np.sqrt(np.mean(sample, axis=axis))
+
+    reference = stats.bootstrap((squared,), rmse, n_resamples=999, method="BCa", vectorized=True,
+                                rng=np.random.default_rng(seed))
+    assert method[0] == "bootstrap BCa"
+    assert low[0] == pytest.approx(reference.confidence_interval.low, rel=1e-10)
+    assert high[0] == pytest.approx(reference.confidence_interval.high, rel=1e-10)
+    assert se[0] == pytest.approx(reference.standard_error, rel=1e-10)
+
+
+def test_a_constant_statistic_has_the_point_as_its_interval():
+    got = summarize([one(np.full(20, 13.0), "mean")], None, seed=1)[0][0]
+    assert (got.low, got.high, got.standard_error) == (13.0, 13.0, 0.0)
+
+
+def test_a_constructed_paired_difference_is_resolved_with_its_size():
+    rng = np.random.default_rng(8)
+    runs = 60
+    base = rng.normal(10.0, 3.0, size=runs)                 # run-to-run spread much larger than the effect
+    rows = [one(base, "mean", variant="ref"), one(base + 0.5 + rng.normal(0, 0.2, runs), "mean", variant="better"),
+            one(base.copy(), "mean", variant="same")]
+    _, comparisons = summarize(rows, "ref", seed=2)
+    by = {c["variant_key"]: c for c in comparisons}
+    better = by["better"]
+    assert better["difference_low"] < 0.5 < better["difference_high"]
+    assert better["difference_high"] - better["difference_low"] < 0.25     # pairing removes the spread of 3
+    assert better["resolved"] and better["wilcoxon_p"] < 1e-6
+    expected = stats.wilcoxon(rows[1].statistic.per_run() - base).pvalue
+    assert better["wilcoxon_p"] == pytest.approx(expected)
+    assert better["ratio_low"] < (base.mean() + 0.5) / base.mean() * 1.01
+    same = by["same"]
+    assert same["difference"] == 0.0 and same["wilcoxon_p"] == 1.0 and not same["resolved"]
+
+
+def test_an_unpaired_look_would_not_resolve_what_the_paired_one_does():
+    rng = np.random.default_rng(9)
+    base = rng.normal(10.0, 3.0, size=40)
+    rows = [one(base, "mean", variant="ref"), one(base + 0.3, "mean", variant="v")]
+    intervals, comparisons = summarize(rows, "ref", seed=3)
+    assert intervals[0].low < intervals[1].value < intervals[0].high        # the intervals overlap
+    assert comparisons[0]["resolved"]
+
+
+def test_per_run_values_are_each_runs_own_statistic():
+    squared = np.array([[1.0, 9.0], [4.0, np.nan]])
+    statistic = WindowStatistic(RunValues(squared, "rms"), [0, 1])
+    np.testing.assert_allclose(statistic.per_run(), [np.sqrt(5.0), 2.0])
+    assert statistic.value() == pytest.approx(np.mean([np.sqrt(2.5), 3.0]))
+    pooled = WindowStatistic(RunValues(squared, "rms"), [0, 1], "pool")
+    assert pooled.value() == pytest.approx(np.sqrt(14.0 / 3))
+
+
+def test_a_ratio_to_a_bound_shares_the_rmse_runs():
+    squared = np.random.default_rng(10).gamma(2.0, size=(30, 5))
+    rmse = RunValues(squared, "rms")
+    bound = np.full(5, 2.0)
+    ratio = WindowStatistic(rmse.over(bound), np.arange(5))
+    plain = WindowStatistic(rmse, np.arange(5))
+    intervals, _ = summarize([Estimated("a", "r", "w", ratio), Estimated("a", "m", "w", plain)], None, seed=1)
+    assert intervals[0].value == pytest.approx(intervals[1].value / 2)
+    assert intervals[0].low == pytest.approx(intervals[1].low / 2)
+
+
+def test_the_runs_that_would_decide_a_target_shrink_the_half_width_as_one_over_sqrt_runs():
+    # value 1.05 +- 0.1 at 100 runs against a threshold of 1.0: (0.1 / 0.05)^2 x 100 = 400 runs
+    assert runs_to_decide(1.05, 0.95, 1.15, 1.0, 100) == 400
+    assert runs_to_decide(1.0, 0.9, 1.1, 1.0, 100) is None
+
+
+def test_bad_kinds_are_refused():
+    with pytest.raises(ValueError, match="across_runs"):
+        RunValues(np.zeros((2, 2)), "average")
+    with pytest.raises(ValueError, match="over_steps"):
+        WindowStatistic(RunValues(np.zeros((2, 2)), "mean"), [0], "median")
