@@ -312,7 +312,8 @@ def time_columns(rr):
 
 
 @contextmanager
-def atomic_recording(rr, path: Path, experiment: str, blueprint):
+def atomic_recording(rr, path: Path, experiment: str, blueprint,
+                     skip_hint: str = "the tables were written before the recording; record.enabled=false skips it"):
     """A recording stream whose encoded bytes are written onto ``path`` atomically when the body ends;
     on any error nothing is left under ``path`` and no temp file stays behind.
 
@@ -337,8 +338,7 @@ def atomic_recording(rr, path: Path, experiment: str, blueprint):
     try:
         atomic_write_bytes(data, path)     # an OSError comes back as a StorageError naming the path and the fix
     except StorageError as exc:
-        raise StorageError(f"{exc} Nothing was left under that name; the tables were written before the recording; "
-                           f"record.enabled=false skips it.") from None
+        raise StorageError(f"{exc} Nothing was left under that name; {skip_hint}.") from None
 
 
 def log_metric_series(rr, rec, times, metric_series: dict) -> None:
