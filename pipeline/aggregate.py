@@ -1,4 +1,5 @@
-"""Sweep-level summary: every job's summary.parquet in one file at the sweep root.
+"""Sweep-level files at the sweep root: every job's summary.parquet in one table (sweep_summary.parquet),
+the jobs with their swept values (sweep_index.parquet) and their metric curves (sweep.rrd).
 
 Hydra calls ``SweepSummary.on_multirun_end`` after a multirun. Jobs never raise out of the task
 function (they record their failure instead), so the callback runs even when a job failed; it is
@@ -15,39 +16,37 @@ folders (and Hydra's ``.hydra/``) would land outside the sweep folder this callb
 from __future__ import annotations
 
 import json
-import logging
 import re
 import sys
 from pathlib import Path
 
-import polars as pl
 from hydra.core.utils import JobReturn, JobStatus
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, open_dict, read_write
 
-from pipeline.store import atomic_write_parquet, read_table
+from pipeline.store import atomic_write_parquet
+from pipeline.sweep import META_SWEPT, SWEEP_INDEX, SWEEP_SUMMARY, Sweep, collect, format_glance
 
-log = logging.getLogger("pipeline.aggregate")
 
-
-def aggregate(sweep_dir: Path) -> tuple[pl.DataFrame, list[dict]]:
-    """Concatenate the jobs' summaries (schemas may differ: swept keys, failed jobs) and list failures."""
-    sweep_dir = Path(sweep_dir)
-    frames, failures = [], []
-    for status_path in sorted(sweep_dir.glob("*/status.json"), key=lambda p: (len(p.parent.name), p.parent.name)):
-        status = json.loads(status_path.read_text())
-        if status.get("status") != "ok":
-            failures.append(status)
-        summary = status_path.parent / "summary.parquet"
-        if summary.exists():
-            try:
-                frames.append(read_table(summary)[0])
-            except Exception as exc:     # damaged (checksum) or unreadable: this job is left out, named
-                log.warning("skipped %s: %s", summary, exc)
-    df = pl.concat(frames, how="diagonal_relaxed") if frames else pl.DataFrame()
-    if frames:
-        atomic_write_parquet(df, sweep_dir / "sweep_summary.parquet", {"mtt.table": "sweep_summary"})
-    return df, failures
+def aggregate(sweep_dir: Path, record: bool = True) -> Sweep:
+    """Write the sweep's tables from its job folders: ``sweep_summary.parquet`` (every job's summary,
+    schemas may differ: swept keys, failed jobs; the job's label and the swept keys first) and
+    ``sweep_index.parquet`` (one row per job with its swept values); then, with ``record``, the
+    sweep's recording ``sweep.rrd``. A recording that cannot be written is a warning: the tables
+    are the sweep's result, and they are written first."""
+    sweep = collect(Path(sweep_dir))
+    metadata = {META_SWEPT: json.dumps(sweep.swept)}
+    if sweep.summary.height:
+        atomic_write_parquet(sweep.summary, sweep.folder / SWEEP_SUMMARY, {"mtt.table": "sweep_summary", **metadata})
+    if sweep.jobs:
+        atomic_write_parquet(sweep.index, sweep.folder / SWEEP_INDEX, {"mtt.table": "sweep_index", **metadata})
+    if record and sweep.jobs:
+        from pipeline.sweep_recording import write_sweep_recording
+        try:
+            write_sweep_recording(sweep)
+        except Exception as exc:      # noqa: BLE001 - e.g. a full disk: the tables above are written
+            print(f"sweep {sweep.folder}: the sweep recording was not written: {exc}", file=sys.stderr)
+    return sweep
 
 
 def _quoted_override_value(text: str) -> str:
@@ -93,7 +92,8 @@ class SweepSummary(Callback):
 
     def on_multirun_end(self, config: DictConfig, **kwargs) -> None:
         sweep_dir = Path(config.hydra.sweep.dir)
-        df, failures = aggregate(sweep_dir)
+        sweep = aggregate(sweep_dir)
+        failures = sweep.failures
         jobs = len(list(sweep_dir.glob("*/status.json")))
         if jobs == 0:
             print(f"sweep {sweep_dir}: no job wrote its status.json under this folder. If the jobs ran on "
@@ -102,7 +102,10 @@ class SweepSummary(Callback):
                   f"own logs are in the launcher's output above.", file=sys.stderr)
             sys.exit(1)
         print(f"sweep {sweep_dir}: {jobs} jobs, {jobs - len(failures)} ok, {len(failures)} failed; "
-              f"summary of all jobs in {sweep_dir / 'sweep_summary.parquet'}", file=sys.stderr)
+              f"summary of all jobs in {sweep_dir / SWEEP_SUMMARY}, the jobs and their swept values in "
+              f"{SWEEP_INDEX}" + (", their metric curves in sweep.rrd" if (sweep_dir / "sweep.rrd").is_file() else ""),
+              file=sys.stderr)
+        print(format_glance(sweep), file=sys.stderr)
         for f in failures:
             print(f"  job {f.get('job_num')} ({' '.join(f.get('overrides', []))}) {f.get('status')}: {f.get('error')}",
                   file=sys.stderr)
@@ -115,10 +118,11 @@ def main(argv: list[str] | None = None) -> int:
     if len(args) != 1 or not Path(args[0]).is_dir():
         print("usage: python -m pipeline.aggregate <sweep_dir>  (a directory holding <job>/status.json)", file=sys.stderr)
         return 2
-    df, failures = aggregate(Path(args[0]))
-    print(f"{df.height} summary rows; {len(failures)} failed jobs", file=sys.stderr)
+    sweep = aggregate(Path(args[0]))
+    failures = sweep.failures
+    print(f"{sweep.summary.height} summary rows; {len(sweep.jobs)} jobs, {len(failures)} failed", file=sys.stderr)
+    print(format_glance(sweep), file=sys.stderr)
     return 1 if failures else 0
-
 
 if __name__ == "__main__":
     sys.exit(main())
