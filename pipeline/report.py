@@ -26,7 +26,8 @@ Experiments declare their part in their YAML under ``report`` (next to ``report.
     reference without a threshold; the query returns one row with ``measured``.
 
 A sweep folder (``multirun/<time>``, or any folder holding runs below it) gets one report per run and
-an ``index.md`` with each run's targets passed; a job that failed (or is unfinished, or whose tables
+an ``index.md`` with each run's swept values (a column per override that differs between the runs)
+and targets passed; a job that failed (or is unfinished, or whose tables
 fail their checksum) gets a line saying why, and the others their reports. ``--check`` exits 1 when
 any target is FAIL or ERROR, or a job has no report. Reports go to ``<run>/report/`` unless ``--out`` is given. The targets and figures are the
 ones the run recorded in its config.yaml; ``--current`` checks a stored run against the
@@ -538,11 +539,15 @@ def write_reports(path: Path, out: Path | None = None, current: bool = False) ->
     if len(runs) == 1 and runs[0] == Path(path):
         return [write_run_report(runs[0], out, current)], None
     index = (Path(out) if out is not None else Path(path)) / "index.md"
-    lines = [f"# Reproduction reports: {path}", "", "| run | experiment | runs | targets passed | report |",
-             "|---|---|---|---|---|"]
+    swept = swept_columns(runs)
+    shown = [k for k in swept if k != "experiment"]        # a swept experiment is the experiment column
+    lines = [f"# Reproduction reports: {path}", "",
+             "| " + " | ".join(["run", *map(_cell, shown), "experiment", "runs", "targets passed", "report"]) + " |",
+             "|" + "---|" * (len(shown) + 5)]
     reports: list[RunReport | NotReported] = []
     for run_dir in runs:
         name = run_dir.relative_to(path) if run_dir != Path(path) else "."
+        name = " | ".join([str(name), *(_cell(swept[k][run_dir]) for k in shown)])     # the run and its swept values
         try:
             status = json.loads((run_dir / "status.json").read_text())
         except (OSError, ValueError):
@@ -568,6 +573,16 @@ def write_reports(path: Path, out: Path | None = None, current: bool = False) ->
     index.parent.mkdir(parents=True, exist_ok=True)
     index.write_text("\n".join(lines) + "\n")
     return reports, index
+
+
+def swept_columns(runs: Sequence[Path]) -> dict[str, dict[Path, str]]:
+    """Swept key -> run folder -> its value as text, for the overrides that differ between the runs
+    (pipeline.sweep: the values the runs' summaries recorded, else the overrides')."""
+    from pipeline.sweep import format_value, label_jobs, read_job
+
+    jobs = [read_job(run_dir) for run_dir in runs]
+    swept, _ = label_jobs(jobs)
+    return {key: {job.folder: format_value(job.values[key]) for job in jobs} for key in swept}
 
 
 @dataclass

@@ -334,7 +334,7 @@ def test_a_report_on_a_sweep_with_a_failed_job_reports_the_others_and_says_why(t
     (sweep,) = (tmp_path / "multirun").iterdir()
     assert report_main([str(sweep)]) == 0
     index = (sweep / "index.md").read_text()
-    assert "| 1 | ao_vsimm_s1 | None | not reported | the job is failed: mc.runs: 0 is not allowed" in index
+    assert "| 1 | 0 | ao_vsimm_s1 | None | not reported | the job is failed: mc.runs: 0 is not allowed" in index   # 0: its mc.runs
     assert (sweep / "0" / "report" / "report.md").is_file() and (sweep / "2" / "report" / "report.md").is_file()
     assert report_main([str(sweep), "--check"]) == 1          # a job without a report fails the check
 
