@@ -247,9 +247,7 @@ def jobs_table(jobs: Sequence[Job], swept: Sequence[str]) -> pl.DataFrame:
         pl.Series("job_num", [j.num for j in jobs], dtype=pl.Int32),
         pl.Series("job", [j.label for j in jobs], dtype=pl.String),
         pl.Series("status", [j.status.get("status") or "unknown" for j in jobs], dtype=pl.String),
-        pl.Series("experiment", [j.status.get("experiment") or format_value(j.values.get("experiment"))
-                                 if j.status.get("experiment") or j.values.get("experiment") is not None else None
-                                 for j in jobs], dtype=pl.String),
+        pl.Series("experiment", [_experiment(j) for j in jobs], dtype=pl.String),
         pl.Series("error", [j.status.get("error") if j.status else
                             "no status.json: the job did not start its task, or its process died first"
                             for j in jobs], dtype=pl.String),
@@ -257,6 +255,12 @@ def jobs_table(jobs: Sequence[Job], swept: Sequence[str]) -> pl.DataFrame:
     ]
     columns += [typed_column(k, [j.values[k] for j in jobs]) for k in swept if k not in JOB_COLUMNS]
     return pl.DataFrame(columns)
+
+
+def _experiment(job: Job) -> str | None:
+    """The experiment the job ran (status.json), else the one its overrides chose."""
+    chosen = job.values.get("experiment", parse_overrides(job.overrides).get("experiment", (None, ""))[0])
+    return job.status.get("experiment") or (None if chosen is None else str(chosen))
 
 
 def _with_job_columns(summary: pl.DataFrame, job: Job, index: pl.DataFrame, swept: Sequence[str]) -> pl.DataFrame:
