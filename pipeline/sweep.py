@@ -388,9 +388,10 @@ def is_numeric(dtype: pl.DataType) -> bool:
 
 
 def draw_metric_figure(data: pl.DataFrame, *, x: str, series: str, window: str | None, unit: str,
-                       path: Path, colours: dict[str, tuple[int, int, int]]) -> None:
+                       path: Path, colours: dict[str, tuple[int, int, int]], left_out: Sequence[str] = ()) -> None:
     """One panel per ``panel`` value, one line per variant (its recording colour), error bars from
-    ci_low / ci_high where present; numeric ``x`` on a numeric axis, anything else as categories."""
+    ci_low / ci_high where present; numeric ``x`` on a numeric axis, anything else as categories.
+    ``left_out``: the labels of jobs without a result (failed, unfinished), named under the title."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -403,6 +404,8 @@ def draw_metric_figure(data: pl.DataFrame, *, x: str, series: str, window: str |
                              sharey=True, squeeze=False)
     numeric = is_numeric(data.schema["x"])
     categories = [format_value(v) for v in data.sort("job_num")["x"].unique(maintain_order=True).to_list()]
+    ticks = sorted(data["x"].drop_nulls().unique().to_list()) if numeric else []
+    span = (ticks[-1] - ticks[0]) or 1.0 if ticks else 1.0
     variants = data["variant_key"].unique(maintain_order=True).to_list()
     with_interval = data.filter(pl.col("ci_low").is_not_null() & pl.col("ci_high").is_not_null()).height > 0
     for ax, name in zip(axes.flat, panels):
@@ -412,8 +415,9 @@ def draw_metric_figure(data: pl.DataFrame, *, x: str, series: str, window: str |
             if rows.height == 0:
                 continue
             colour = tuple(c / 255 for c in colours[key])
-            if numeric:
-                xs = rows["x"].cast(pl.Float64).to_list()
+            if numeric:              # with bars, variants a little apart so that their bars do not hide each other
+                shift = (i - (len(variants) - 1) / 2) * 0.012 * span if with_interval else 0.0
+                xs = [v + shift for v in rows["x"].cast(pl.Float64).to_list()]
             else:                    # categories side by side: a small offset per variant keeps bars apart
                 offset = (i - (len(variants) - 1) / 2) * 0.08
                 xs = [categories.index(format_value(v)) + offset for v in rows["x"].to_list()]
@@ -429,6 +433,8 @@ def draw_metric_figure(data: pl.DataFrame, *, x: str, series: str, window: str |
         if not numeric:
             ax.set_xticks(range(len(categories)), categories, rotation=20 if len(categories) > 3 else 0,
                           ha="right" if len(categories) > 3 else "center")
+        elif len(ticks) <= 12:           # the swept values themselves (seeds 1, 2; not 1.2, 1.4, ...)
+            ax.set_xticks(ticks, [format_value(v) for v in ticks])
         if name:
             ax.set_title(name, fontsize=9)
         ax.set_xlabel(x)
@@ -441,6 +447,9 @@ def draw_metric_figure(data: pl.DataFrame, *, x: str, series: str, window: str |
     method = data["interval"].drop_nulls().unique().to_list() if "interval" in data.columns else []
     note = (f"bars: 95 % interval across Monte Carlo runs{' (' + ', '.join(map(str, method)) + ')' if method else ''}"
             if with_interval else "no interval in these summaries (no ci_low / ci_high)")
+    if left_out:
+        missing = "; ".join(left_out)
+        note += f"\nnot drawn (no result): {missing if len(missing) <= 110 else missing[:109] + '…'}"
     fig.suptitle(f"{series}, window {window or NO_WINDOW + ' (whole run)'}, against {x}\n{note}", fontsize=10)
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -474,12 +483,14 @@ def draw_figures(sweep: Sweep, metric: str, window: str | None = None, x: str | 
     select_metric(sweep.summary, metric, window)          # an unknown metric or window: one error, before any figure
     colours = {key: variant_colour(i) for i, key in enumerate(variant_order(sweep.summary))}
     out = Path(out) if out is not None else sweep.folder / "figures"
+    finished = set(sweep.summary.filter(pl.col("status") == "ok")["job"].to_list()) if "status" in sweep.summary.columns else set()
+    left_out = [job.label for job in sweep.jobs if job.label not in finished]
     paths = []
     for key in keys:
         data, series, chosen = metric_against(sweep, metric, window, key)
         path = out / f"{path_part(series)}_{path_part(chosen or 'whole_run')}_vs_{path_part(key)}.png"
         draw_metric_figure(data, x=key, series=series, window=chosen, unit=_unit(sweep.summary.filter(
-            pl.col("series") == series), series), path=path, colours=colours)
+            pl.col("series") == series), series), path=path, colours=colours, left_out=left_out)
         paths.append(path)
     return paths
 

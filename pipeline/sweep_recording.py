@@ -116,13 +116,14 @@ def jobs_markdown(sweep: Sweep) -> str:
              "Each line is one job (named by its swept values) and variant: the variant's colour as in the run "
              "recordings, the job's shade from full (first job) to light (last).", "",
              "| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    errors = []
     for job in sweep.jobs:
         status = job.status.get("status") or "unknown"
-        if status != "ok" and job.status.get("error"):
-            status += ": " + " ".join(str(job.status["error"]).split())[:200]
         cells = [str(job.num)] + [format_value(job.values[k]) for k in sweep.swept] + [status, job.folder.name]
         lines.append("| " + " | ".join(c.replace("|", "\\|") for c in cells) + " |")
-    return "\n".join(lines) + "\n"
+        if status != "ok" and job.status.get("error"):   # below the table: a cell would cut it off
+            errors.append(f"- job {job.num}: {' '.join(str(job.status['error']).split())}")
+    return "\n".join(lines + ([""] + errors if errors else [])) + "\n"
 
 
 def write_sweep_recording(sweep: Sweep, path: Path | None = None, series: list[str] | None = None) -> Path | None:
