@@ -82,7 +82,8 @@ def test_the_figure_data_is_the_summary_per_job_variant_and_panel(real_sweep, tm
     assert (series, window) == ("position_rmse", "all")
     assert data.schema["x"] == pl.Float64
     assert data["panel"].unique(maintain_order=True).to_list() == ["seed=1", "seed=2"]   # the other swept key
-    assert data.height == 4 * 3 and data["ci_low"].null_count() == data.height         # today's tables: no interval
+    assert data.height == 4 * 3 and data["ci_low"].null_count() == 0                  # every point with its interval
+    assert (data["ci_low"] <= data["value"]).all() and (data["value"] <= data["ci_high"]).all()
     first = data.filter(pl.col("panel") == "seed=1")
     assert first["variant_key"].to_list() == ["fsimm", "fsimm", "vsimm", "vsimm", "ao_vsimm", "ao_vsimm"]
     assert first["x"].to_list() == [0.8, 0.9] * 3
