@@ -5,7 +5,8 @@ For each run (a folder with ``summary.parquet``, ``metrics.parquet``, ``config.y
 made from the stored tables alone:
 
 - **Reproduction targets**: each of the spec's targets with the paper's / spec's value, the value
-  measured in this run and PASS / FAIL (ERROR when its query fails or returns no row);
+  measured in this run and PASS / FAIL / INCONCLUSIVE judged with the values' 95 % intervals over the
+  runs (ERROR when its query fails or returns no row);
 - **Figures**: the experiment's figures, each drawn from a named SQL query (shown with it);
 - **How far from the limit**: NEES / NIS run averages with the share of steps inside their 95 %
   chi-square band, RMSE / sqrt(PCRLB) per window, and their figures over time;
@@ -29,7 +30,7 @@ A sweep folder (``multirun/<time>``, or any folder holding runs below it) gets o
 an ``index.md`` with each run's swept values (a column per override that differs between the runs)
 and targets passed; a job that failed (or is unfinished, or whose tables
 fail their checksum) gets a line saying why, and the others their reports. ``--check`` exits 1 when
-any target is FAIL or ERROR, or a job has no report. Reports go to ``<run>/report/`` unless ``--out`` is given. The targets and figures are the
+any target is FAIL or ERROR, or a job has no report (INCONCLUSIVE does not fail it). Reports go to ``<run>/report/`` unless ``--out`` is given. The targets and figures are the
 ones the run recorded in its config.yaml; ``--current`` checks a stored run against the
 definitions conf/ holds now (e.g. a target added after the run).
 """
@@ -223,12 +224,18 @@ class RunTables:
     summary: pl.DataFrame
     metrics: pl.DataFrame
     wide: pl.DataFrame          # the summary pivoted: one row per window, one column per "<variant_key>:<series>"
+    wide_low: pl.DataFrame | None = None     # the same with each value's ci_low / ci_high (the value where none)
+    wide_high: pl.DataFrame | None = None
+    comparisons: pl.DataFrame | None = None
 
-    def query(self, sql: str) -> pl.DataFrame:
+    def query(self, sql: str, wide: pl.DataFrame | None = None) -> pl.DataFrame:
+        """``sql`` over this run's tables; ``wide`` replaces the wide table (a corner of the intervals)."""
         from pipeline.query import check_tables_only
         check_tables_only(sql)                     # the run's tables only, no file-reading functions
-        context = pl.SQLContext(summary=self.summary, metrics=self.metrics, wide=self.wide, eager=True)
-        return context.execute(sql)
+        frames = {"summary": self.summary, "metrics": self.metrics, "wide": self.wide if wide is None else wide}
+        if self.comparisons is not None:
+            frames["comparisons"] = self.comparisons
+        return pl.SQLContext(frames, eager=True).execute(sql)
 
 
 def load_run(run_dir: Path) -> RunTables:
@@ -253,8 +260,13 @@ def load_run(run_dir: Path) -> RunTables:
         return df.with_columns(pl.col(c).fill_nan(None) for c in floats)
 
     summary = read("summary.parquet")
+    comparisons = read("comparisons.parquet") if (run_dir / "comparisons.parquet").is_file() else None
+    low = high = None
+    if {"ci_low", "ci_high"} <= set(summary.columns):
+        low = pivot_summary(summary.with_columns(pl.coalesce("ci_low", "value").alias("value")))
+        high = pivot_summary(summary.with_columns(pl.coalesce("ci_high", "value").alias("value")))
     return RunTables(run_dir, str(status.get("experiment") or config.get("experiment_name")), config, status,
-                     summary, read("metrics.parquet"), pivot_summary(summary))
+                     summary, read("metrics.parquet"), pivot_summary(summary), low, high, comparisons)
 
 
 def pivot_summary(summary: pl.DataFrame) -> pl.DataFrame:
@@ -272,10 +284,24 @@ def pivot_summary(summary: pl.DataFrame) -> pl.DataFrame:
 class TargetResult:
     spec: TargetSpec
     measured: str
-    verdict: str               # PASS | FAIL | ERROR
+    verdict: str               # PASS | FAIL | INCONCLUSIVE | ERROR
+    point_pass: bool | None = None      # the verdict of the values alone, without their intervals
+    runs_to_decide: str = ""            # for INCONCLUSIVE: how many runs would likely decide it
+    interval_note: str = ""             # what the verdict's intervals were (or why there were none)
+
+
+VERDICTS = ("PASS", "FAIL", "INCONCLUSIVE", "ERROR")
+MAX_CORNERS = 1024
+MOST_RUNS_FACTOR = 100               # INCONCLUSIVE beyond 100x the runs: 'more than 100x'
 
 
 def evaluate_target(tables: RunTables, spec: TargetSpec) -> TargetResult:
+    """The target's query on the values, then on every corner of the 95 % intervals of the wide
+    columns it reads: PASS when it passes at the values and at every corner (the intervals are on
+    the right side of every threshold), FAIL when it fails at all of them, INCONCLUSIVE otherwise,
+    with the runs that would likely decide it (the intervals shrink as 1/sqrt(runs)). A query that
+    reads no interval (the summary or metrics tables directly, window-free values such as compute
+    time) is judged on its values."""
     try:
         df = tables.query(spec.query)
     except Exception as exc:  # noqa: BLE001 - a broken query is reported, not raised
@@ -287,7 +313,69 @@ def evaluate_target(tables: RunTables, spec: TargetSpec) -> TargetResult:
     if row["measured"] is None or row["pass"] is None:
         return TargetResult(spec, "no value: an input of the query is NULL (an empty window, a variant or "
                                   "metric this run does not have)", "ERROR")
-    return TargetResult(spec, str(row["measured"]), "PASS" if bool(row["pass"]) else "FAIL")
+    point = bool(row["pass"])
+    columns = _interval_columns(tables, spec.query)
+    if not columns:
+        return TargetResult(spec, str(row["measured"]), "PASS" if point else "FAIL", point,
+                            interval_note="judged on the values: the query reads no summary interval")
+    outcomes = _corner_outcomes(tables, spec.query, columns, 1.0)
+    if outcomes is None:
+        return TargetResult(spec, str(row["measured"]), "PASS" if point else "FAIL", point,
+                            interval_note="judged on the values: a corner of the intervals gave no verdict")
+    note = f"{len(columns)} value(s) with intervals: " + ", ".join(columns)
+    if all(o == point for o in outcomes):
+        return TargetResult(spec, str(row["measured"]), "PASS" if point else "FAIL", point, interval_note=note)
+    runs = int(tables.status.get("runs") or 0)
+
+    def decided(factor: float) -> bool:          # the verdict of the values, with the runs x factor
+        shrunk = _corner_outcomes(tables, spec.query, columns, 1.0 / math.sqrt(factor))
+        return shrunk is not None and all(o == point for o in shrunk)
+
+    needed = f"more than {MOST_RUNS_FACTOR}x the runs"
+    if decided(MOST_RUNS_FACTOR):                 # bisect the factor on a log scale (shrinking decides for good)
+        low, high = 1.0, float(MOST_RUNS_FACTOR)
+        for _ in range(14):
+            middle = math.sqrt(low * high)
+            low, high = (low, middle) if decided(middle) else (middle, high)
+        needed = f"about {math.ceil(runs * high)} runs" if runs else f"about {high:.2g}x the runs"
+    return TargetResult(spec, str(row["measured"]), "INCONCLUSIVE", point, needed, note)
+
+
+def _interval_columns(tables: RunTables, sql: str) -> list[str]:
+    """The wide columns the query names whose values have an interval wider than a point."""
+    import re
+    if tables.wide_low is None or not re.search(r"\bwide\b", sql):
+        return []
+    named = [c for c in dict.fromkeys(re.findall(r'"([^"]+)"', sql)) if c in tables.wide.columns and c != "window"]
+    return [c for c in named if not tables.wide_low[c].equals(tables.wide_high[c])]
+
+
+def _corner_outcomes(tables: RunTables, sql: str, columns: Sequence[str], shrink: float) -> list[bool] | None:
+    """The query's ``pass`` at each corner of the intervals of ``columns`` (each at its low or high end),
+    the half-widths scaled by ``shrink``; None when a corner gives no verdict."""
+    import itertools
+
+    import numpy as np
+
+    corners = itertools.product((0, 1), repeat=len(columns))
+    if 2 ** len(columns) > MAX_CORNERS:          # many inputs: a seeded sample of the corners
+        rng = np.random.default_rng(0)
+        corners = (tuple(rng.integers(0, 2, len(columns))) for _ in range(MAX_CORNERS))
+    outcomes = []
+    for corner in corners:
+        replaced = []
+        for column, end in zip(columns, corner):
+            value = tables.wide[column]
+            bound = (tables.wide_high if end else tables.wide_low)[column]
+            replaced.append((value + (bound - value) * shrink).alias(column))
+        try:
+            df = tables.query(sql, tables.wide.with_columns(replaced))
+        except Exception:  # noqa: BLE001 - e.g. a corner that divides by 0
+            return None
+        if df.height != 1 or df["pass"][0] is None:
+            return None
+        outcomes.append(bool(df["pass"][0]))
+    return outcomes
 
 
 def evaluate_finding(tables: RunTables, spec: FindingSpec) -> str:
@@ -384,7 +472,7 @@ class RunReport:
 
     @property
     def counts(self) -> dict[str, int]:
-        return {v: sum(t.verdict == v for t in self.targets) for v in ("PASS", "FAIL", "ERROR")}
+        return {v: sum(t.verdict == v for t in self.targets) for v in VERDICTS}
 
 
 def _md_table(df: pl.DataFrame, digits: int = 3) -> str:
@@ -437,11 +525,18 @@ def write_run_report(run_dir: Path, out_dir: Path | None = None, current: bool =
     if report.targets:
         c = report.counts
         lines += [f"**{c['PASS']} of {len(report.targets)} pass**" + (f", {c['FAIL']} fail" if c["FAIL"] else "")
+                  + (f", {c['INCONCLUSIVE']} inconclusive" if c["INCONCLUSIVE"] else "")
                   + (f", {c['ERROR']} error" if c["ERROR"] else "") + f" (at {status.get('runs')} runs; the spec's "
                   f"references are at the paper's size).", "",
+                  "A target is PASS when it holds at its values and at every corner of their 95 % intervals over the "
+                  "runs (each value at its interval's low or high end), FAIL when it fails at all of them, "
+                  "INCONCLUSIVE when the intervals straddle a threshold (with the runs that would likely decide it: "
+                  "intervals shrink as 1/sqrt(runs)).", "",
                   "| id | target | paper / spec | measured here | result |", "|---|---|---|---|---|"]
         for t in report.targets:
-            mark = {"PASS": "PASS", "FAIL": "**FAIL**", "ERROR": "**ERROR**"}[t.verdict]
+            mark = {"PASS": "PASS", "FAIL": "**FAIL**", "ERROR": "**ERROR**",
+                    "INCONCLUSIVE": f"INCONCLUSIVE (values {'pass' if t.point_pass else 'fail'}; "
+                                    f"{t.runs_to_decide} would likely decide)"}[t.verdict]
             lines.append(f"| {t.spec.id} | {_cell(t.spec.target)} | {_cell(t.spec.paper)} | {_cell(t.measured)} | {mark} |")
         lines += [""] + [_sql_block(t.spec.id, t.spec.query) for t in report.targets] + [""]
     else:
@@ -567,6 +662,7 @@ def write_reports(path: Path, out: Path | None = None, current: bool = False) ->
         c = rep.counts
         total = sum(c.values())
         verdict = f"{c['PASS']} / {total}" + (f" ({c['FAIL']} FAIL)" if c["FAIL"] else "") + \
+            (f" ({c['INCONCLUSIVE']} INCONCLUSIVE)" if c["INCONCLUSIVE"] else "") + \
             (f" ({c['ERROR']} ERROR)" if c["ERROR"] else "") if total else "none declared"
         lines.append(f"| {name} | {rep.experiment} | {status.get('runs')} | {verdict} | "
                      f"[{rep.path.name}]({rep.path.relative_to(index.parent)}) |")
@@ -605,7 +701,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--latest", action="store_true", help="report the newest run or sweep under --artifacts (runs/ or multirun/)")
     parser.add_argument("--artifacts", default="artifacts", help="the artifacts root for --latest (default: artifacts)")
     parser.add_argument("--out", help="write the reports here instead of <run>/report/")
-    parser.add_argument("--check", action="store_true", help="exit 1 when any reproduction target is FAIL or ERROR, or a job has no report")
+    parser.add_argument("--check", action="store_true", help="exit 1 when any reproduction target is FAIL or ERROR, "
+                        "or a job has no report (INCONCLUSIVE does not fail)")
     parser.add_argument("--current", action="store_true",
                         help="check the targets and figures as conf/ defines them now, not as the run recorded them")
     args = parser.parse_args(argv)
@@ -627,11 +724,14 @@ def main(argv: Sequence[str] | None = None) -> int:
             continue
         c = rep.counts
         print(f"{rep.experiment}: {c['PASS']}/{sum(c.values())} targets pass"
-              + (f", {c['FAIL']} FAIL" if c["FAIL"] else "") + (f", {c['ERROR']} ERROR" if c["ERROR"] else "")
+              + (f", {c['FAIL']} FAIL" if c["FAIL"] else "")
+              + (f", {c['INCONCLUSIVE']} INCONCLUSIVE" if c["INCONCLUSIVE"] else "")
+              + (f", {c['ERROR']} ERROR" if c["ERROR"] else "")
               + f", {len(rep.figures)} figures -> {rep.path}")
         for t in rep.targets:
             if t.verdict != "PASS":
-                print(f"  {t.verdict} {t.spec.id}: {t.measured}")
+                decide = f" ({t.runs_to_decide} would likely decide)" if t.runs_to_decide else ""
+                print(f"  {t.verdict} {t.spec.id}: {t.measured}{decide}")
         failed += c["FAIL"] + c["ERROR"]
     if index is not None:
         print(f"index: {index}")
