@@ -1,6 +1,6 @@
 """Query the artifacts tree with SQL: ``python -m pipeline.query`` / ``mtt-query``.
 
-Three tables are registered, all lazy:
+These tables are registered, all lazy:
 
 ``summary``
     every ``summary.parquet`` of every single run (``<root>/runs/<experiment>/<timestamp>/``)
@@ -15,8 +15,19 @@ Three tables are registered, all lazy:
 ``runs``
     one row per run/job directory from its ``status.json`` (the ``list`` frame, plus
     ``finished_at`` and ``config_hash``).
+``per_run``
+    every ``per_run.parquet``: each Monte Carlo run's own value (column ``run``) of every summary
+    statistic (variant x series x window), for distributions and per-run questions.
+``comparisons``
+    every ``comparisons.parquet``: each variant against its experiment's reference variant, paired
+    over the runs (difference and ratio with their 95 % intervals, Wilcoxon p, ``resolved``).
+``truth`` / ``estimates``
+    the stage tables of every run folder (``truth.parquet``, ``estimates/<variant>.parquet``), with
+    the folder's ``run_id`` and ``experiment`` (and the estimates' ``variant_key``) as columns;
+    their columns differ by study (the union, null where a study has none). Large: read only when
+    a query names them.
 
-Only files named exactly ``summary.parquet`` / ``metrics.parquet`` / ``status.json`` are read,
+Only files with those names (and ``status.json``) are read,
 never hidden files or directories (the writers' ``.<name>.<random>.tmp`` temp files, ``.hydra``,
 ``.submitit``), never ``*.rejected`` and never ``<root>/cache``. A corrupt or truncated Parquet
 file, or one whose rows do not match the content checksum stored when it was written
@@ -62,7 +73,11 @@ __all__ = ["QueryError", "QueryWarning", "load_tables", "query", "runs_frame", "
 SUMMARY_FILE = "summary.parquet"
 METRICS_FILE = "metrics.parquet"
 STATUS_FILE = "status.json"
-TABLE_FILES = {"summary": SUMMARY_FILE, "metrics": METRICS_FILE}
+TABLE_FILES = {"summary": SUMMARY_FILE, "metrics": METRICS_FILE, "per_run": "per_run.parquet",
+               "comparisons": "comparisons.parquet", "truth": "truth.parquet", "estimates": "estimates/*.parquet"}
+#: The stage tables (one schema per study): each file gets the run folder's run_id and experiment (and
+#: the estimates their variant_key) as columns, and the union of all files' columns is the table.
+STAGE_TABLES = ("truth", "estimates")
 
 #: Columns every summary has (in this order); config columns follow, sorted by name.
 SUMMARY_COLUMNS: dict[str, pl.DataType] = {
@@ -78,7 +93,23 @@ METRICS_COLUMNS: dict[str, pl.DataType] = {
     "target": pl.Int32(), "series": pl.String(), "step": pl.Int32(), "time": pl.Float64(),
     "value": pl.Float64(), "n_runs": pl.Int32(),
 }
-FIXED_COLUMNS = {"summary": SUMMARY_COLUMNS, "metrics": METRICS_COLUMNS}
+PER_RUN_COLUMNS: dict[str, pl.DataType] = {
+    "run_id": pl.String(), "experiment": pl.String(), "run": pl.Int32(), "variant": pl.String(),
+    "variant_key": pl.String(), "metric": pl.String(), "component": pl.String(), "sensor": pl.Int32(),
+    "target": pl.Int32(), "series": pl.String(), "window": pl.String(), "value": pl.Float64(),
+}
+COMPARISONS_COLUMNS: dict[str, pl.DataType] = {
+    "run_id": pl.String(), "experiment": pl.String(), "variant_key": pl.String(), "reference_key": pl.String(),
+    "metric": pl.String(), "component": pl.String(), "sensor": pl.Int32(), "target": pl.Int32(),
+    "series": pl.String(), "window": pl.String(), "value": pl.Float64(), "reference_value": pl.Float64(),
+    "n_paired_runs": pl.Int32(), "difference": pl.Float64(), "difference_low": pl.Float64(),
+    "difference_high": pl.Float64(), "ratio": pl.Float64(), "ratio_low": pl.Float64(), "ratio_high": pl.Float64(),
+    "wilcoxon_p": pl.Float64(), "resolved": pl.Boolean(),
+}
+STAGE_COLUMNS: dict[str, pl.DataType] = {"run_id": pl.String(), "experiment": pl.String()}
+FIXED_COLUMNS = {"summary": SUMMARY_COLUMNS, "metrics": METRICS_COLUMNS, "per_run": PER_RUN_COLUMNS,
+                 "comparisons": COMPARISONS_COLUMNS, "truth": STAGE_COLUMNS,
+                 "estimates": {**STAGE_COLUMNS, "variant_key": pl.String()}}
 #: The ``runs`` table.
 RUNS_COLUMNS: dict[str, pl.DataType] = {
     "run_id": pl.String(), "experiment": pl.String(), "kind": pl.String(), "sweep": pl.String(),
@@ -89,7 +120,9 @@ RUNS_COLUMNS: dict[str, pl.DataType] = {
 #: What ``list`` prints.
 LIST_COLUMNS = ["run_id", "experiment", "kind", "sweep", "job_num", "status", "started_at",
                 "runs", "overrides", "error"]
-TABLE_NAMES = ("summary", "metrics", "runs")
+TABLE_NAMES = ("summary", "metrics", "runs", "per_run", "comparisons", "truth", "estimates")
+#: What a query that names no table gets (the stage tables are large: read only when named).
+DEFAULT_TABLES = ("summary", "metrics", "runs", "per_run", "comparisons")
 ERROR_WIDTH = 120
 DEFAULT_MAX_ROWS = 1000
 
@@ -342,8 +375,9 @@ class _ParquetTable:
     name: str
     files: list[Path] = field(default_factory=list)
     schemas: list[pl.Schema] = field(default_factory=list)
+    constants: dict[Path, dict[str, str]] = field(default_factory=dict)   # a stage file's run_id, ...
 
-    def add(self, path: Path, warn: Warn) -> None:
+    def add(self, path: Path, warn: Warn, constants: Mapping[str, str] | None = None) -> None:
         from pipeline.store import TableDamaged, read_table
         try:
             # read whole and checked against the content checksum stored when it was written: a
@@ -355,6 +389,9 @@ class _ParquetTable:
         except Exception as e:  # noqa: BLE001 - any unreadable file: skip the file, keep going
             warn(f"skipping corrupt or truncated {path}: {_one_line(e)}")
             return
+        if constants:
+            self.constants[path] = dict(constants)
+            schema = pl.Schema({**{k: pl.String() for k in constants}, **schema})
         self.files.append(path)
         self.schemas.append(schema)
 
@@ -390,6 +427,13 @@ class _ParquetTable:
         target = self.target_schema(warn)
         if not self.files:
             return pl.LazyFrame(schema=target)
+        if self.name in STAGE_TABLES:        # per file: its run folder's columns, then the union
+            parts = [pl.scan_parquet(f, glob=False).select(
+                        *[pl.lit(v, dtype=pl.String).alias(k) for k, v in self.constants.get(f, {}).items()], pl.all())
+                     for f in self.files]
+            return pl.concat(parts, how="diagonal_relaxed").select(
+                [pl.col(c) if c in set().union(*[set(s) for s in self.schemas]) else pl.lit(None, dtype=dt).alias(c)
+                 for c, dt in target.items()])
         fast: list[str] = []
         slow: dict[tuple, list[str]] = {}
         for f, s in zip(self.files, self.schemas):
@@ -435,14 +479,24 @@ class _Catalog:
     def table(self, name: str) -> _ParquetTable:
         if name not in self.tables:
             t = _ParquetTable(name)
+            experiments = dict(zip(self.runs["run_id"].to_list(), self.runs["experiment"].to_list())) \
+                if self.runs.height else {}
             for r in self.run_dirs:
+                if name == "estimates":
+                    folder = r.path / "estimates"
+                    for p in sorted(folder.glob("*.parquet")) if folder.is_dir() else []:
+                        if not p.name.startswith("."):
+                            t.add(p, self.warn, {"run_id": r.run_id, "experiment": experiments.get(r.run_id),
+                                                 "variant_key": p.stem})
+                    continue
                 p = r.path / TABLE_FILES[name]
                 if p.is_file():
-                    t.add(p, self.warn)
+                    t.add(p, self.warn, {"run_id": r.run_id, "experiment": experiments.get(r.run_id)}
+                          if name in STAGE_TABLES else None)
             self.tables[name] = t
         return self.tables[name]
 
-    def lazy(self, names: Iterable[str] = TABLE_NAMES) -> dict[str, pl.LazyFrame]:
+    def lazy(self, names: Iterable[str] = DEFAULT_TABLES) -> dict[str, pl.LazyFrame]:
         return {n: self.runs.lazy() if n == "runs" else self.table(n).lazy(self.warn)
                 for n in names}
 
@@ -546,7 +600,7 @@ def _run_sql(sql: str, cat: _Catalog, warn: Warn) -> pl.DataFrame:
         raise QueryError(f"empty SQL query. Tables: {', '.join(TABLE_NAMES)}. {QUOTING_HELP}")
     check_tables_only(sql)
     # read the footers only of the tables the query names (all of them if it names none)
-    names = [n for n in TABLE_NAMES if re.search(rf"\b{n}\b", sql, re.IGNORECASE)] or TABLE_NAMES
+    names = [n for n in TABLE_NAMES if re.search(rf"\b{n}\b", sql, re.IGNORECASE)] or DEFAULT_TABLES
     tables = cat.lazy(names)
     try:
         return _execute(sql, tables)

@@ -186,7 +186,7 @@ def test_list_table_format_and_experiment_filter(root, capsys):
 def test_load_tables_unifies_drifting_schemas(root):
     with pytest.warns(QueryWarning, match="truncated"):
         tables = load_tables(root)
-    assert set(tables) == {"summary", "metrics", "runs"}
+    assert set(tables) == {"summary", "metrics", "runs", "per_run", "comparisons"}   # the stage tables when named
     assert all(isinstance(lf, pl.LazyFrame) for lf in tables.values())
     schema = tables["summary"].collect_schema()
     assert list(schema)[:len(q.SUMMARY_COLUMNS)] == list(q.SUMMARY_COLUMNS)
@@ -226,7 +226,7 @@ def test_tables_command(root, capsys):
     code, out, err = run_cli(capsys, "tables", "--root", str(root), "--format", "csv")
     assert code == 0
     df = pl.read_csv(io.StringIO(out))
-    assert set(df["table"]) == {"summary", "metrics", "runs"}
+    assert set(df["table"]) == {"summary", "metrics", "runs", "per_run", "comparisons"}
     row = df.filter((pl.col("table") == "summary") & (pl.col("column") == "filters.vsimm.t1_mu"))
     assert row["dtype"].to_list() == ["Float64"]
     assert "truncated" in err and RUN_TRUNC in err
