@@ -549,6 +549,7 @@ def write_run_report(run_dir: Path, out_dir: Path | None = None, current: bool =
             lines.append(f"| {f.id} | {_cell(f.finding)} | {_cell(f.paper)} | {_cell(measured)} |")
         lines += [""] + [_sql_block(f.id, f.query) for f in spec.findings] + [""]
 
+    lines += _comparisons_section(tables)
     if spec.figures:
         lines += ["## Figures", ""]
         for fig in spec.figures:
@@ -583,6 +584,43 @@ def write_run_report(run_dir: Path, out_dir: Path | None = None, current: bool =
     tmp.write_text("\n".join(lines))
     tmp.replace(report.path)
     return report
+
+
+def _comparisons_section(tables: RunTables) -> list[str]:
+    """Which differences from the reference variant the runs resolve (comparisons.parquet), for the
+    metrics the printed summary shows."""
+    from pipeline.metrics import format_value, printed_columns
+
+    c = tables.comparisons
+    if c is None or c.height == 0:
+        return []
+    labels = dict(printed_columns(set(c["series"].to_list())))
+    c = c.filter(pl.col("series").is_in(list(labels)) & pl.col("window").is_not_null())
+    if c.height == 0:
+        return []
+    names = dict(zip(tables.summary["variant_key"].to_list(), tables.summary["variant"].to_list()))
+    reference = names.get(c["reference_key"][0], c["reference_key"][0])
+    lines = ["## Paired comparisons with " + reference, "",
+             f"Each variant minus {reference} on the same runs and noise (comparisons.parquet): the difference "
+             "and the ratio with their 95 % bootstrap intervals over the runs (the same resamples for both "
+             "variants), and the Wilcoxon signed-rank p-value of the runs' own values. **Resolved**: the "
+             "difference's interval excludes 0; otherwise these runs cannot tell the two apart.", "",
+             "| variant | metric | window | difference [95 %] | ratio [95 %] | Wilcoxon p | resolved |",
+             "|---|---|---|---|---|---|---|"]
+    for row in c.iter_rows(named=True):
+        def interval(value, low, high, series=row["series"]):
+            if value is None:
+                return ""
+            text = format_value(series, value)
+            return text if low is None or high is None else \
+                f"{text} [{format_value(series, low)}, {format_value(series, high)}]"
+        ratio = "" if row["ratio"] is None else f"{row['ratio']:.3f}" + (
+            "" if row["ratio_low"] is None else f" [{row['ratio_low']:.3f}, {row['ratio_high']:.3f}]")
+        p = "" if row["wilcoxon_p"] is None else f"{row['wilcoxon_p']:.2g}"
+        lines.append(f"| {names.get(row['variant_key'], row['variant_key'])} | {labels[row['series']]} | "
+                     f"{row['window']} | {interval(row['difference'], row['difference_low'], row['difference_high'])} | "
+                     f"{ratio} | {p} | {'**yes**' if row['resolved'] else 'no'} |")
+    return lines + [""]
 
 
 def _cell(text: str) -> str:
