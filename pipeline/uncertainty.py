@@ -42,6 +42,7 @@ ACROSS_RUNS = ("rms", "mean", "sum", "median")
 OVER_STEPS = ("mean", "sum", "max", "pool")
 CONFIDENCE = 0.95
 RESAMPLES = 2000
+FLOAT32_CELLS = 200_000           # runs x steps above which a metric's resampled sums are float32
 _BATCH_CELLS = 4_000_000          # resamples x steps per bootstrap batch: a few such arrays (32 MB each) at a time
 
 
@@ -182,8 +183,15 @@ class ResampledTotals:
             self._filled.clear()
             part = values[:, self._columns_of[key]]
             finite = np.isfinite(part)
-            self._filled[key] = (np.where(finite, part, 0.0), finite)
+            self._filled[key] = (np.where(finite, part, 0.0).astype(self.dtype(part)), finite)
         return self._filled[key]
+
+    @staticmethod
+    def dtype(part: np.ndarray) -> type:
+        """float32 for a large product (a 100-run, 10 001-step metric): it halves the product's time and
+        memory, and its relative rounding (1e-6 over a run sum) is four orders below an interval's
+        width; float64 for small ones, where it costs nothing (and the tests compare with scipy)."""
+        return np.float32 if part.size > FLOAT32_CELLS else np.float64
 
     def _pick(self, key: int, table: np.ndarray, columns: np.ndarray, full: np.ndarray) -> np.ndarray:
         if columns is self._columns_of[key]:
@@ -195,7 +203,8 @@ class ResampledTotals:
         if key not in self._totals:
             self._totals.clear()              # metrics of one array come together: keep one array's sums
             full = self._columns_of[key]
-            self._totals[key] = (counts @ self._prepared(values)[0], full)
+            filled = self._prepared(values)[0]
+            self._totals[key] = (counts.astype(filled.dtype, copy=False) @ filled, full)
         table, full = self._totals[key]
         return self._pick(key, table, columns, full)
 
@@ -211,7 +220,7 @@ class ResampledTotals:
                 table = drawn
             else:
                 table = np.broadcast_to(drawn, (counts.shape[0], full.size)).copy()
-                table[:, ~every] = counts @ valid[:, ~every].astype(float)
+                table[:, ~every] = counts @ valid[:, ~every].astype(counts.dtype)
             self._valid[key] = table
         table = self._valid[key]
         return table if table.shape[1] == 1 else self._pick(key, table, columns, full)
