@@ -13,9 +13,12 @@ runner (pipeline.runner) calls exactly these hooks, in this order:
    ``estimate_from_frame(df, metadata)`` reads it back (a cached stage, and later stages, see
    exactly what the table holds).
 4. ``per_step_metrics(truth, estimate, sensor)`` per variant, then ``extra_summary(...)`` for
-   summary rows beyond the per-window means. Every metric name is in the registry
-   (``pipeline.metrics``: unit, aggregation, label, printed digits, dof); a study registers its
-   own names when its module is imported.
+   summary rows beyond the per-window means. A Monte Carlo metric is returned per run
+   (``pipeline.uncertainty.RunValues``): its value over the runs per step, the summary's interval
+   across runs, the paired comparisons and the per-run table all come from it; a plain (K,) array
+   is a fixed value (a bound, a chi-square band) without an interval. Every metric name is in the
+   registry (``pipeline.metrics``: unit, aggregation, label, printed digits, dof); a study
+   registers its own names when its module is imported.
 5. ``record(path, inputs)``: the Rerun recording of the runs in ``inputs.record_runs``.
 
 A study is a config node (``study: {_target_: ...}``); an experiment without one gets
@@ -121,13 +124,16 @@ class Study(ABC):
         return fault_flags(estimate.state, estimate.covariance, checks, None, extras.get("weights_underflow"))
 
     @abstractmethod
-    def per_step_metrics(self, truth: "Truth", estimate: Any, sensor: Any) -> dict[str, np.ndarray]:
-        """metric name -> (K,) values over the truth's steps (means over runs)."""
+    def per_step_metrics(self, truth: "Truth", estimate: Any, sensor: Any) -> dict[str, Any]:
+        """metric name -> ``RunValues`` (R, K): each run's contribution per step and how runs combine
+        (rms, mean, sum, median), or a fixed (K,) array over the truth's steps."""
 
     def extra_summary(self, truth: "Truth", estimates: Mapping[str, Any], display: Mapping[str, str], runs: int,
                       reference: str | None, sensor: Any,
                       per_variant: Mapping[str, tuple[str, dict[str, np.ndarray]]]) -> list[dict]:
-        """Summary rows beyond the per-window means (the summary table's schema); default none."""
+        """Summary rows beyond the per-window means (``pipeline.evaluate.summary_row``; with a
+        ``statistic``, a ``pipeline.uncertainty.WindowStatistic``, the row gets its interval and
+        paired comparison); ``per_variant`` holds each variant's per-step values. Default none."""
         return []
 
     @abstractmethod
