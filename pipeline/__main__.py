@@ -2,6 +2,9 @@
 
 A failed job prints one paragraph and exits non-zero in a single run; in a multirun it records
 its error (status.json + a failed summary row) and lets the other jobs go on.
+
+With ``objective`` set (a parameter search, conf/tune/), the task function returns that summary
+value for the sweeper; a job without one (failed, or NaN) returns None (pipeline.objective says why).
 """
 
 from __future__ import annotations
@@ -17,6 +20,7 @@ from hydra.types import RunMode
 from omegaconf import DictConfig
 
 from pipeline.errors import PipelineError
+from pipeline.objective import objective_value, trial_result
 from pipeline.runner import RunContext, describe_exception, job_context, record_job_failure, run_experiment
 
 log = logging.getLogger("pipeline")
@@ -29,6 +33,7 @@ def main(cfg: DictConfig) -> float | None:
     ctx = job_context(cfg, hc)
     try:
         outcome = run_experiment(cfg, ctx)
+        objective = objective_value(outcome.summary, cfg.get("objective"))   # a missing row fails the job
     except PipelineError as exc:
         if multirun or (ctx.run_dir / "status.json").exists():
             _fail(ctx, cfg, str(exc), None)               # the sweep lists the job; a started run says why
@@ -46,7 +51,14 @@ def main(cfg: DictConfig) -> float | None:
         log.error("job %s failed: %s (traceback in %s)", hc.job.num, message, ctx.run_dir / "status.json")
         return None
     print(outcome.table)
-    return None
+    if objective is None:
+        return None
+    log.info("objective: %s of %s over window %s = %s", cfg.objective.series, cfg.objective.variant,
+             cfg.objective.window, objective)
+    result = trial_result(objective)
+    if result is None:
+        log.warning("objective is NaN: returned as None, a failed trial for the sweeper (a NaN aborts an Optuna sweep)")
+    return result
 
 
 def _remove_unused_run_folder(run_dir: Path, artifacts: Path) -> None:

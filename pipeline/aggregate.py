@@ -1,5 +1,6 @@
 """Sweep-level files at the sweep root: every job's summary.parquet in one table (sweep_summary.parquet),
-the jobs with their swept values (sweep_index.parquet) and their metric curves (sweep.rrd).
+the jobs with their swept values (sweep_index.parquet) and their metric curves (sweep.rrd), and for a
+sweep whose jobs name an ``objective`` (a parameter search) the best job's config in best_config.yaml.
 
 Hydra calls ``SweepSummary.on_multirun_end`` after a multirun. Jobs never raise out of the task
 function (they record their failure instead), so the callback runs even when a job failed; it is
@@ -20,10 +21,13 @@ import re
 import sys
 from pathlib import Path
 
+import yaml
 from hydra.core.utils import JobReturn, JobStatus
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, open_dict, read_write
 
+from pipeline.errors import PipelineError
+from pipeline.objective import BEST_CONFIG, write_best_config
 from pipeline.store import atomic_write_parquet
 from pipeline.sweep import META_SWEPT, SWEEP_INDEX, SWEEP_SUMMARY, Sweep, collect, format_glance
 
@@ -106,11 +110,68 @@ class SweepSummary(Callback):
               f"{SWEEP_INDEX}" + (", their metric curves in sweep.rrd" if (sweep_dir / "sweep.rrd").is_file() else ""),
               file=sys.stderr)
         print(format_glance(sweep), file=sys.stderr)
+        report_best_job(sweep_dir)
         for f in failures:
             print(f"  job {f.get('job_num')} ({' '.join(f.get('overrides', []))}) {f.get('status')}: {f.get('error')}",
                   file=sys.stderr)
         if failures:
             sys.exit(1)
+
+
+def report_best_job(sweep_dir: Path) -> None:
+    """With an objective (a parameter search): write <sweep_dir>/best_config.yaml and say which job won.
+    Optuna's own optimization_results.yaml holds the best parameters only; this adds the whole config
+    of the job they came from, and checks that both name the same value."""
+    try:
+        best = write_best_config(sweep_dir)
+    except PipelineError as exc:
+        print(f"  no best job: {exc}", file=sys.stderr)
+        return
+    if best is None:
+        if _names_an_objective(sweep_dir):
+            print("  no best job: no job that ended ok has a finite objective value", file=sys.stderr)
+        return
+    value = best["objective"]["value"]
+    print(f"  best job {best['job_num']} of {best['compared']}: {best['objective']['series']} = {value:.6g}; its "
+          f"config in {sweep_dir / BEST_CONFIG}", file=sys.stderr)
+    optuna = sweep_dir / "optimization_results.yaml"
+    if optuna.is_file():
+        reported = yaml.safe_load(optuna.read_text()).get("best_value")
+        if reported is not None and reported != value:   # e.g. a study resumed from storage with older trials
+            print(f"  note: Optuna's best_value {reported} (optimization_results.yaml) is not this sweep's best job's "
+                  f"{value}: the study holds trials this folder does not", file=sys.stderr)
+
+
+def _names_an_objective(sweep_dir: Path) -> bool:
+    return any(yaml.safe_load(p.read_text()).get("objective") is not None for p in sweep_dir.glob("*/config.yaml"))
+
+
+def report_best_job(sweep_dir: Path) -> None:
+    """With an objective (a parameter search): write <sweep_dir>/best_config.yaml and say which job won.
+    Optuna's own optimization_results.yaml holds the best parameters only; this adds the whole config
+    of the job they came from, and checks that both name the same value."""
+    try:
+        best = write_best_config(sweep_dir)
+    except PipelineError as exc:
+        print(f"  no best job: {exc}", file=sys.stderr)
+        return
+    if best is None:
+        if _names_an_objective(sweep_dir):
+            print("  no best job: no job that ended ok has a finite objective value", file=sys.stderr)
+        return
+    value = best["objective"]["value"]
+    print(f"  best job {best['job_num']} of {best['compared']}: {best['objective']['series']} = {value:.6g}; its "
+          f"config in {sweep_dir / BEST_CONFIG}", file=sys.stderr)
+    optuna = sweep_dir / "optimization_results.yaml"
+    if optuna.is_file():
+        reported = yaml.safe_load(optuna.read_text()).get("best_value")
+        if reported is not None and reported != value:   # e.g. a study resumed from storage with older trials
+            print(f"  note: Optuna's best_value {reported} (optimization_results.yaml) is not this sweep's best job's "
+                  f"{value}: the study holds trials this folder does not", file=sys.stderr)
+
+
+def _names_an_objective(sweep_dir: Path) -> bool:
+    return any(yaml.safe_load(p.read_text()).get("objective") is not None for p in sweep_dir.glob("*/config.yaml"))
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -122,6 +183,7 @@ def main(argv: list[str] | None = None) -> int:
     failures = sweep.failures
     print(f"{sweep.summary.height} summary rows; {len(sweep.jobs)} jobs, {len(failures)} failed", file=sys.stderr)
     print(format_glance(sweep), file=sys.stderr)
+    report_best_job(Path(args[0]))
     return 1 if failures else 0
 
 if __name__ == "__main__":

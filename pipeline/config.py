@@ -131,6 +131,62 @@ def validate(cfg: DictConfig) -> None:
                           f"choose one of {list(cfg.filters.keys())} or null.")
 
 
+OBJECTIVE_DIRECTIONS = ("minimize", "maximize")
+OBJECTIVE_EXAMPLE = "e.g. objective={variant: vsimm, series: acceleration_rmse_x, window: after_switch, direction: minimize}"
+
+
+def summary_windows(cfg: DictConfig) -> list[str]:
+    """The window names the config gives the summary's rows: metrics.windows, metrics.count_windows and
+    the group-reached row's '<group> by step <k>' (a study's own rows may add others)."""
+    metrics = cfg.get("metrics") or {}
+    names = [str(k) for k in (metrics.get("windows") or {})] + [str(k) for k in (metrics.get("count_windows") or {})]
+    reached = metrics.get("group_reached")
+    if reached:
+        names.append(f"{reached.get('group')} by step {reached.get('by_step')}")
+    return names
+
+
+def check_objective(cfg: DictConfig, variants: list[str]) -> None:
+    """``objective``: null, or the one summary value a parameter search optimises (the task function
+    returns it). Checked once the study is built (its metric names are registered then), before any
+    stage runs: a typo must not cost a whole search of failed trials."""
+    from pipeline.metrics import lookup, registered
+    objective = cfg.get("objective")
+    if objective is None:
+        return
+    if not isinstance(objective, DictConfig):
+        raise ConfigError(f"objective: {objective!r} is not allowed; it must be null (no objective) or a mapping "
+                          f"naming one value of the summary, {OBJECTIVE_EXAMPLE}.")
+    unknown = sorted(set(objective.keys()) - {"variant", "series", "window", "direction"})
+    if unknown:
+        raise ConfigError(f"objective: key(s) {unknown} are not allowed; the objective takes variant, series, window "
+                          f"and direction, {OBJECTIVE_EXAMPLE}.")
+    variant = objective.get("variant")
+    if variant not in variants:
+        chosen = cfg.get("variants")
+        chosen = "null" if chosen is None else list(chosen) if isinstance(chosen, ListConfig) else repr(chosen)
+        raise ConfigError(f"objective.variant: {variant!r} is not allowed; it must be the key of a variant this job "
+                          f"runs, one of {variants} (experiment '{cfg.get('experiment_name')}' with variants={chosen}).")
+    series = objective.get("series")
+    if not isinstance(series, str) or lookup(series) is None:
+        names, patterns = registered()
+        raise ConfigError(f"objective.series: {series!r} is not allowed; it must name a summary series of the metric "
+                          f"registry (pipeline.metrics): one of {names}" + (f", or a name matching one of the patterns "
+                          f"{patterns}" if patterns else "") + ".")
+    window = objective.get("window")
+    windows = summary_windows(cfg)
+    if window is not None and window not in windows:
+        raise ConfigError(f"objective.window: {window!r} is not allowed; it must be one of the summary windows this "
+                          f"config defines, {windows}, or null for a series summarised over no window (compute_seconds, "
+                          f"the fault counts). Windows a study adds to its own rows (e.g. sonobuoy's 'final') cannot "
+                          f"be checked before the run and are not objectives yet.")
+    direction = objective.get("direction")
+    if direction not in OBJECTIVE_DIRECTIONS:
+        raise ConfigError(f"objective.direction: {direction!r} is not allowed; it must be one of "
+                          f"{list(OBJECTIVE_DIRECTIONS)} (what the search does with the value; with hydra/sweeper=optuna "
+                          f"the sweeper's direction follows it).")
+
+
 def _check_windows(cfg: DictConfig, key: str) -> dict:
     """metrics.<key>: name -> [first_step, last_step] with 0 <= first_step <= last_step."""
     windows = cfg.metrics.get(key) or {}

@@ -82,6 +82,12 @@ def lookup(name: str) -> Metric | None:
     return None
 
 
+def registered() -> tuple[list[str], list[str]]:
+    """(the registered names in registration order, the families' patterns): what a summary's
+    ``series`` may be, for messages that list the allowed names."""
+    return list(_ORDER), [pattern.pattern for pattern, _ in _FAMILIES]
+
+
 def breakdown(name: str) -> tuple[str, str | None, int | None, int | None]:
     """(metric, component, sensor, target) of a series name: position_rmse_s2_t32 -> (position_rmse,
     None, 2, 32), acceleration_rmse_x -> (acceleration_rmse, x, None, None); a name the registry does

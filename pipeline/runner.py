@@ -25,7 +25,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from pipeline import schemas
 from pipeline.contract import RecordingInputs, Study
-from pipeline.config import build, flatten, selected_variants, validate
+from pipeline.config import build, check_objective, flatten, selected_variants, validate
 from pipeline.errors import ConfigError
 from pipeline.evaluate import Window, metrics_frame, summary_row, summary_rows, summary_table
 from pipeline.evaluate import resolved as per_step_values
@@ -109,8 +109,10 @@ def _provenance(df: pl.DataFrame, ctx: RunContext, experiment: str, config_hash:
 
 def _config_columns(resolved: dict) -> dict[str, Any]:
     # filters.<v>.models repeats the top-level models node (interpolated): keep it once; the report
-    # node holds reference tables (a paper's numbers), not parameters of the experiment
-    return {f"{k}": v for k, v in flatten(resolved, skip=("filters.*.models", "description", "report", "smoke")).items()}
+    # node holds reference tables (a paper's numbers), the objective what a search reads: neither is
+    # a parameter of the experiment
+    return {f"{k}": v for k, v in flatten(resolved, skip=("filters.*.models", "description", "report", "smoke",
+                                                          "objective")).items()}
 
 
 def _windows(cfg: DictConfig, key: str, K: int, warn: bool = False) -> list[Window]:
@@ -302,6 +304,7 @@ def prepare(cfg: DictConfig) -> Prepared:
         raise ConfigError(f"study: {cfg.study.get('_target_')} is not a pipeline.contract.Study; a study subclasses "
                           f"it and provides the hooks it lists (track_input, estimate_to_frame, per_step_metrics, "
                           f"record, ...).")
+    check_objective(cfg, variants)     # after the study: building it registers its metric names
     scenario = build(cfg.scenario, "scenario")
     sensor = build(cfg.sensors, "sensors")
     estimators = {v: build(cfg.filters[v], f"filters.{v}") for v in variants}

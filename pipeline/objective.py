@@ -1,0 +1,115 @@
+"""A parameter search's objective: one value of a job's summary, and the sweep's best job.
+
+``objective: {variant, series, window, direction}`` (conf/config.yaml; checked before any stage by
+pipeline.config.check_objective) names one row of summary.parquet. The task function returns that
+row's value, so Hydra's Optuna sweeper (``tune=<file in conf/tune>``) optimises it; after any
+multirun whose jobs set an objective, SweepSummary writes ``<sweep_dir>/best_config.yaml``: the
+best job's config with its objective value, found from the jobs' own summaries by this module's
+one function, the one the task function used.
+
+What the task function returns for a job without a value: ``None``. hydra-optuna-sweeper 1.3.0
+marks such a trial FAIL ("Return value must be float-castable") and goes on, and Optuna's samplers
+leave failed trials out. A NaN must never reach it: with optuna 2.10.1, ``study.tell`` refuses NaN
+and the sweeper's own failure path then passes the NaN again, which raises out of the whole sweep.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import shlex
+from pathlib import Path
+from typing import Any, Mapping
+
+import polars as pl
+import yaml
+
+from pipeline.errors import ConfigError
+from pipeline.store import atomic_write_text, read_table
+
+log = logging.getLogger("pipeline.objective")
+
+BEST_CONFIG = "best_config.yaml"
+
+
+def objective_value(summary: pl.DataFrame, objective: Mapping[str, Any] | None) -> float | None:
+    """The summary's value for ``objective`` (NaN where the run left it undefined), or None when
+    there is no objective. A summary without that row raises ConfigError naming what it holds."""
+    if objective is None:
+        return None
+    variant, series, window = objective["variant"], objective["series"], objective.get("window")
+    rows = summary.filter((pl.col("variant_key") == variant) & (pl.col("series") == series)
+                          & (pl.col("window").is_null() if window is None else pl.col("window") == window))
+    if rows.height != 1:
+        held = summary.filter((pl.col("variant_key") == variant) & (pl.col("series") == series))["window"]
+        found = (f"it holds that series over the windows {held.to_list()}" if held.len()
+                 else f"its series for that variant are {sorted(summary.filter(pl.col('variant_key') == variant)['series'].unique().to_list())}")
+        raise ConfigError(f"objective: the summary has {rows.height} rows for variant {variant!r}, series {series!r}, "
+                          f"window {window!r}, not one, so there is no objective value; {found}. Set objective.series "
+                          f"and objective.window to one of those.")
+    value = rows["value"][0]
+    return math.nan if value is None else float(value)
+
+
+def trial_result(value: float | None) -> float | None:
+    """What the task function returns for an objective value: the value, or None for NaN (see the
+    module docstring: a NaN would abort an Optuna sweep; None fails only its trial)."""
+    if value is None or math.isnan(value):
+        return None
+    return value
+
+
+def best_job(sweep_dir: Path) -> dict[str, Any] | None:
+    """The sweep's best ok job by the objective its config names, or None when no job has a finite
+    objective value. Every job must name the same objective (values of different objectives do not
+    compare); a sweep that varies it gets ConfigError."""
+    candidates, objectives = [], {}
+    for status_path in sorted(Path(sweep_dir).glob("*/status.json")):
+        job_dir = status_path.parent
+        status = json.loads(status_path.read_text())
+        config_path = job_dir / "config.yaml"
+        if status.get("status") != "ok" or not config_path.is_file():
+            continue
+        config = yaml.safe_load(config_path.read_text())
+        objective = config.get("objective")
+        if objective is None:
+            continue
+        objectives[job_dir.name] = objective
+        try:
+            value = objective_value(read_table(job_dir / "summary.parquet")[0], objective)
+        except Exception as exc:       # a damaged or missing summary: this job cannot be compared
+            log.warning("job %s left out of the best job: %s", job_dir.name, exc)
+            continue
+        if value is not None and not math.isnan(value):
+            candidates.append((value, job_dir, status, config))
+    if len({json.dumps(o, sort_keys=True) for o in objectives.values()}) > 1:
+        raise ConfigError(f"objective: the jobs of {sweep_dir} name different objectives ({objectives}); their values "
+                          f"do not compare, so the sweep has no best job. Sweep the parameters, not the objective.")
+    if not candidates:
+        return None
+    objective = next(iter(objectives.values()))
+    pick = min if objective["direction"] == "minimize" else max
+    value, job_dir, status, config = pick(candidates, key=lambda c: c[0])
+    return {"job_dir": job_dir, "job_num": status.get("job_num"), "overrides": status.get("overrides", []),
+            "objective": {**objective, "value": value}, "compared": len(candidates), "config": config}
+
+
+def write_best_config(sweep_dir: Path) -> dict[str, Any] | None:
+    """Write ``<sweep_dir>/best_config.yaml`` (best_trial: job, overrides, objective with its value;
+    config: the job's resolved config.yaml) and return the best job, or None (nothing written)."""
+    best = best_job(sweep_dir)
+    if best is None:
+        return None
+    objective = best["objective"]
+    window = "no window" if objective.get("window") is None else f"window {objective['window']}"
+    header = (f"# The best job of the sweep in this folder by its objective: {objective['series']} of variant "
+              f"{objective['variant']} over {window}, {objective['direction']}d over {best['compared']} jobs.\n"
+              f"# config: the job's own config.yaml (resolved). Run it again alone:\n"
+              f"#   python -m pipeline {' '.join(shlex.quote(o) for o in best['overrides'])}\n")
+    document = {"best_trial": {"job_num": best["job_num"], "job_dir": str(best["job_dir"]),
+                               "overrides": best["overrides"], "objective": objective},
+                "config": best["config"]}
+    atomic_write_text(header + yaml.safe_dump(document, sort_keys=False, allow_unicode=True),
+                      Path(sweep_dir) / BEST_CONFIG)
+    return best
