@@ -18,15 +18,10 @@ from pathlib import Path
 
 import pytest
 
-EXTRA = "needs the [distributed] extra: pip install -e '.[test,distributed]'"
-try:
-    import hydra_plugins.hydra_ray_launcher  # noqa: F401
-    import ray  # noqa: F401
-except ImportError as exc:
-    # .ci/run sets MTT_REQUIRE_DISTRIBUTED=1: in CI a missing extra fails instead of skipping
-    if os.environ.get("MTT_REQUIRE_DISTRIBUTED") == "1":
-        raise ImportError(f"{exc}. MTT_REQUIRE_DISTRIBUTED=1 (set by .ci/run): this run {EXTRA}") from exc
-    pytest.skip(f"ray / hydra-ray-launcher not importable ({exc}); {EXTRA}", allow_module_level=True)
+from tests.extras import require_extra
+
+# .ci/run sets MTT_REQUIRE_DISTRIBUTED=1: in CI a missing extra fails instead of skipping
+require_extra("distributed", "hydra_plugins.hydra_ray_launcher", "ray")
 
 from pipeline.query import query  # noqa: E402  (after the skip: the module needs nothing of Ray)
 
