@@ -107,7 +107,7 @@ def write_best_config(sweep_dir: Path) -> dict[str, Any] | None:
               f"{objective['variant']} over {window}, {objective['direction']}d over {best['compared']} jobs.\n"
               f"# config: the job's own config.yaml (resolved). Run it again alone:\n"
               f"#   python -m pipeline {' '.join(shlex.quote(o) for o in best['overrides'])}\n")
-    document = {"best_trial": {"job_num": best["job_num"], "job_dir": str(best["job_dir"]),
+    document = {"best_trial": {"job_num": best["job_num"], "job_dir": str(Path(best["job_dir"]).resolve()),
                                "overrides": best["overrides"], "objective": objective},
                 "config": best["config"]}
     atomic_write_text(header + yaml.safe_dump(document, sort_keys=False, allow_unicode=True),
