@@ -169,3 +169,28 @@ def test_bad_kinds_are_refused():
         RunValues(np.zeros((2, 2)), "average")
     with pytest.raises(ValueError, match="over_steps"):
         WindowStatistic(RunValues(np.zeros((2, 2)), "mean"), [0], "median")
+
+
+def test_the_resampled_median_is_numpys_nanmedian_with_nans_anywhere():
+    from pipeline.uncertainty import nanmedian_last
+    drawn = np.random.default_rng(12).normal(size=(7, 5, 9))
+    drawn[drawn > 1.0] = np.nan                               # some columns lose several values
+    drawn[:, 3, :] = np.nan                                   # one column has none
+    with np.errstate(all="ignore"), pytest.warns(RuntimeWarning):
+        expected = np.nanmedian(drawn, axis=-1)
+    np.testing.assert_array_equal(nanmedian_last(drawn), expected)
+    clean = np.random.default_rng(13).normal(size=(4, 3, 6))
+    np.testing.assert_array_equal(nanmedian_last(clean), np.median(clean, axis=-1))
+
+
+def test_a_bootstrapped_median_over_runs_and_members_matches_a_direct_resample():
+    values = np.random.default_rng(14).gamma(2.0, size=(20, 6, 4))
+    values[3, 2, :] = np.nan
+    rv = RunValues(values, "median")
+    statistic = WindowStatistic(rv, np.arange(6))
+    low, high, se, method = bootstrap_values([(rv, [statistic])], 20, lambda v: np.stack(v), 1,
+                                             stream_seed(1, "m"), 0.95, 400)
+    drawn = np.random.default_rng(stream_seed(1, "m")).integers(0, 20, size=(400, 20))
+    direct = np.array([np.nanmean(np.nanmedian(np.moveaxis(values[i], 2, 1).reshape(-1, 6), axis=0))
+                       for i in drawn])
+    assert se[0] == pytest.approx(direct.std(ddof=1), rel=1e-9)
