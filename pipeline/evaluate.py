@@ -288,8 +288,8 @@ def _models_per_step(metrics: Mapping[str, RunValues | np.ndarray], w: Window) -
 
 
 def summary_table(rows: Sequence[dict], reference_key: str | None, seed: int, confidence: float = CONFIDENCE,
-                  resamples: int = RESAMPLES) -> tuple[pl.DataFrame, pl.DataFrame, pl.DataFrame]:
-    """(summary, comparisons, per-run) tables from summary rows (``summary_row``).
+                  resamples: int = RESAMPLES) -> tuple[pl.DataFrame, pl.DataFrame, pl.DataFrame, pl.DataFrame]:
+    """(summary, comparisons, per-run, resamples) tables from summary rows (``summary_row``).
 
     summary: each row with ``n_valid_runs``, ``standard_error``, ``ci_low``, ``ci_high`` and the
     ``interval`` method (pipeline.uncertainty); null for a value not estimated from runs (compute
@@ -300,7 +300,8 @@ def summary_table(rows: Sequence[dict], reference_key: str | None, seed: int, co
     """
     estimated = [Estimated(r["variant_key"], r["series"], r["window"], r["statistic"])
                  for r in rows if r.get("statistic") is not None]
-    intervals, comparisons = summarize(estimated, reference_key, seed, confidence, resamples)
+    kept: dict = {}
+    intervals, comparisons = summarize(estimated, reference_key, seed, confidence, resamples, kept)
     by_row: dict[int, Interval] = {}
     j = 0
     for i, r in enumerate(rows):
@@ -329,7 +330,23 @@ def summary_table(rows: Sequence[dict], reference_key: str | None, seed: int, co
     compared = pl.DataFrame(comparisons, schema=comparisons_schema()).with_columns(
         pl.col(pl.Float64).fill_nan(None))
     per_run = per_run_table(rows)
-    return summary, compared, per_run
+    return summary, compared, per_run, resamples_table(estimated, kept.get("values"))
+
+
+def resamples_table(estimated: Sequence[Estimated], values: np.ndarray | None) -> pl.DataFrame:
+    """variant_key x series x window x resample: the first joint bootstrap resamples of every summary
+    statistic (the same resampled runs in every row), on which the report judges compound targets."""
+    schema = {"variant_key": pl.String, "series": pl.String, "window": pl.String, "resample": pl.Int16,
+              "value": pl.Float64}
+    if values is None or not len(estimated):
+        return pl.DataFrame(schema=schema)
+    count = values.shape[1]
+    return pl.DataFrame({
+        "variant_key": np.repeat([e.variant for e in estimated], count),
+        "series": np.repeat([e.series for e in estimated], count),
+        "window": pl.Series(np.repeat(np.array([e.window for e in estimated], dtype=object), count), dtype=pl.String),
+        "resample": np.tile(np.arange(count, dtype=np.int16), len(estimated)),
+        "value": values.reshape(-1).astype(float)}, schema=schema).with_columns(pl.col("value").fill_nan(None))
 
 
 def per_run_table(rows: Sequence[dict]) -> pl.DataFrame:

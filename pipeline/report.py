@@ -227,6 +227,7 @@ class RunTables:
     wide_low: pl.DataFrame | None = None     # the same with each value's ci_low / ci_high (the value where none)
     wide_high: pl.DataFrame | None = None
     comparisons: pl.DataFrame | None = None
+    wide_resamples: pl.DataFrame | None = None   # the wide table once per joint bootstrap resample (column resample)
 
     def query(self, sql: str, wide: pl.DataFrame | None = None) -> pl.DataFrame:
         """``sql`` over this run's tables; ``wide`` replaces the wide table (a corner of the intervals)."""
@@ -265,8 +266,28 @@ def load_run(run_dir: Path) -> RunTables:
     if {"ci_low", "ci_high"} <= set(summary.columns):
         low = pivot_summary(summary.with_columns(pl.coalesce("ci_low", "value").alias("value")))
         high = pivot_summary(summary.with_columns(pl.coalesce("ci_high", "value").alias("value")))
+    wide = pivot_summary(summary)
+    resampled = None
+    if (run_dir / "resamples.parquet").is_file():
+        resampled = resampled_wide(wide, read("resamples.parquet"))
     return RunTables(run_dir, str(status.get("experiment") or config.get("experiment_name")), config, status,
-                     summary, read("metrics.parquet"), pivot_summary(summary), low, high, comparisons)
+                     summary, read("metrics.parquet"), wide, low, high, comparisons, resampled)
+
+
+def resampled_wide(wide: pl.DataFrame, resamples: pl.DataFrame) -> pl.DataFrame | None:
+    """The wide table once per stored joint resample (a ``resample`` column): each resampled value
+    from that resample of the runs, every other value (compute time, bounds) as it is."""
+    if resamples.height == 0 or wide.height == 0:
+        return None
+    resampled = (resamples.with_columns(pl.col("window").fill_null("-"),
+                                        (pl.col("variant_key") + ":" + pl.col("series")).alias("column"))
+                 .pivot(on="column", index=["window", "resample"], values="value", aggregate_function="first"))
+    ids = resamples.select(pl.col("resample").unique().sort())
+    grid = wide.join(ids, how="cross")
+    joined = grid.join(resampled, on=["window", "resample"], how="left", suffix="__resampled")
+    replaced = [pl.coalesce(f"{c}__resampled", c).alias(c) for c in wide.columns
+                if c != "window" and f"{c}__resampled" in joined.columns]
+    return joined.with_columns(replaced).select(wide.columns + ["resample"])
 
 
 def pivot_summary(summary: pl.DataFrame) -> pl.DataFrame:
@@ -296,12 +317,13 @@ MOST_RUNS_FACTOR = 100               # INCONCLUSIVE beyond 100x the runs: 'more 
 
 
 def evaluate_target(tables: RunTables, spec: TargetSpec) -> TargetResult:
-    """The target's query on the values, then on every corner of the 95 % intervals of the wide
-    columns it reads: PASS when it passes at the values and at every corner (the intervals are on
-    the right side of every threshold), FAIL when it fails at all of them, INCONCLUSIVE otherwise,
-    with the runs that would likely decide it (the intervals shrink as 1/sqrt(runs)). A query that
-    reads no interval (the summary or metrics tables directly, window-free values such as compute
-    time) is judged on its values."""
+    """The target's query on the values, then on the run's stored joint bootstrap resamples
+    (``_judged_on_resamples``: paired, the way the runs were drawn). A run written before the
+    resamples were stored is judged on every corner of the 95 % intervals of the wide columns the
+    query reads: PASS when it passes at the values and at every corner, FAIL when it fails at all of
+    them, INCONCLUSIVE otherwise (conservative: the corners ignore that variants share runs). A
+    query that reads no interval (the summary or metrics tables directly, window-free values such
+    as compute time) is judged on its values."""
     try:
         df = tables.query(spec.query)
     except Exception as exc:  # noqa: BLE001 - a broken query is reported, not raised
@@ -314,6 +336,8 @@ def evaluate_target(tables: RunTables, spec: TargetSpec) -> TargetResult:
         return TargetResult(spec, "no value: an input of the query is NULL (an empty window, a variant or "
                                   "metric this run does not have)", "ERROR")
     point = bool(row["pass"])
+    if tables.wide_resamples is not None:
+        return _judged_on_resamples(tables, spec, str(row["measured"]), point)
     columns = _interval_columns(tables, spec.query)
     if not columns:
         return TargetResult(spec, str(row["measured"]), "PASS" if point else "FAIL", point,
@@ -339,6 +363,56 @@ def evaluate_target(tables: RunTables, spec: TargetSpec) -> TargetResult:
             low, high = (low, middle) if decided(middle) else (middle, high)
         needed = f"about {math.ceil(runs * high)} runs" if runs else f"about {high:.2g}x the runs"
     return TargetResult(spec, str(row["measured"]), "INCONCLUSIVE", point, needed, note)
+
+
+def _judged_on_resamples(tables: RunTables, spec: TargetSpec, measured: str, point: bool) -> TargetResult:
+    """The target's query on each stored joint resample of the runs (every value of the wide table from
+    the same resampled runs, so a comparison of two variants is a paired one): PASS when the values
+    pass and at least 97.5 % of the resamples do (the one-sided 95 % percentile interval of whatever
+    the target measures lies on the passing side), FAIL when the values fail and at most 2.5 % pass,
+    INCONCLUSIVE otherwise. The runs that would likely decide it: the share of passing resamples is
+    Phi(z) with z = margin / standard error, which grows as sqrt(runs), so n' = n (1.96 / z)^2."""
+    import re
+
+    from scipy.special import ndtri
+
+    wide = tables.wide_resamples
+    named = [c for c in dict.fromkeys(re.findall(r'"([^"]+)"', spec.query)) if c in wide.columns and c != "window"]
+    varying = [c for c in named if wide[c].drop_nulls().n_unique() > 1]
+    if not re.search(r"\bwide\b", spec.query) or not varying:
+        return TargetResult(spec, measured, "PASS" if point else "FAIL", point,
+                            interval_note="judged on the values: the query reads no summary interval")
+    count = int(wide["resample"].n_unique())
+    try:
+        together = tables.query(spec.query, wide)
+    except Exception:  # noqa: BLE001
+        together = None
+    if together is not None and together.height == count and "pass" in together.columns:
+        outcomes = together["pass"].to_list()
+    else:                     # a query that does not keep one row per resample: one resample at a time
+        outcomes = []
+        for r in range(count):
+            try:
+                df = tables.query(spec.query, wide.filter(pl.col("resample") == r).drop("resample"))
+            except Exception:  # noqa: BLE001
+                df = None
+            outcomes.append(df["pass"][0] if df is not None and df.height == 1 and "pass" in df.columns else None)
+    judged = [bool(o) for o in outcomes if o is not None]
+    if len(judged) < 0.9 * count:
+        return TargetResult(spec, measured, "PASS" if point else "FAIL", point,
+                            interval_note="judged on the values: the resamples gave no verdict")
+    share = sum(judged) / len(judged)
+    note = f"passes on {100 * share:.1f} % of {len(judged)} joint resamples of the runs"
+    if (point and share >= 0.975) or (not point and share <= 0.025):
+        return TargetResult(spec, measured, "PASS" if point else "FAIL", point, interval_note=note)
+    runs = int(tables.status.get("runs") or 0)
+    z = float(ndtri(min(max(share, 0.5 / len(judged)), 1 - 0.5 / len(judged))))
+    if (z > 0) != point or z == 0:
+        needed = "no number of runs (the resamples lean against the values)"
+    else:
+        factor = (1.96 / z) ** 2
+        needed = f"about {math.ceil(runs * factor)} runs" if runs else f"about {factor:.2g}x the runs"
+    return TargetResult(spec, measured, "INCONCLUSIVE", point, needed, note)
 
 
 def _interval_columns(tables: RunTables, sql: str) -> list[str]:
@@ -528,15 +602,18 @@ def write_run_report(run_dir: Path, out_dir: Path | None = None, current: bool =
                   + (f", {c['INCONCLUSIVE']} inconclusive" if c["INCONCLUSIVE"] else "")
                   + (f", {c['ERROR']} error" if c["ERROR"] else "") + f" (at {status.get('runs')} runs; the spec's "
                   f"references are at the paper's size).", "",
-                  "A target is PASS when it holds at its values and at every corner of their 95 % intervals over the "
-                  "runs (each value at its interval's low or high end), FAIL when it fails at all of them, "
-                  "INCONCLUSIVE when the intervals straddle a threshold (with the runs that would likely decide it: "
-                  "intervals shrink as 1/sqrt(runs)).", "",
+                  "Each target's query is also run on 400 joint bootstrap resamples of the runs (every value from "
+                  "the same resampled runs, so comparisons between variants are paired): PASS when the values pass "
+                  "and at least 97.5 % of the resamples do, FAIL when the values fail and at most 2.5 % pass, "
+                  "INCONCLUSIVE in between, with the runs that would likely decide it (the margin over its "
+                  "standard error grows as sqrt(runs)). A target that reads no interval is judged on its values.", "",
                   "| id | target | paper / spec | measured here | result |", "|---|---|---|---|---|"]
         for t in report.targets:
             mark = {"PASS": "PASS", "FAIL": "**FAIL**", "ERROR": "**ERROR**",
                     "INCONCLUSIVE": f"INCONCLUSIVE (values {'pass' if t.point_pass else 'fail'}; "
                                     f"{t.runs_to_decide} would likely decide)"}[t.verdict]
+            if t.interval_note:
+                mark += f"<br><sub>{_cell(t.interval_note)}</sub>"
             lines.append(f"| {t.spec.id} | {_cell(t.spec.target)} | {_cell(t.spec.paper)} | {_cell(t.measured)} | {mark} |")
         lines += [""] + [_sql_block(t.spec.id, t.spec.query) for t in report.targets] + [""]
     else:

@@ -409,6 +409,8 @@ def run_experiment(cfg: DictConfig, ctx: RunContext) -> RunOutcome:
                          {**schemas.table_metadata("comparisons", {}, {}), **provenance})
     atomic_write_parquet(_provenance(evaluated.per_run, ctx, experiment, config_hash),
                          ctx.run_dir / "per_run.parquet", {**schemas.table_metadata("per_run", {}, {}), **provenance})
+    atomic_write_parquet(evaluated.resamples, ctx.run_dir / "resamples.parquet",
+                         {**schemas.table_metadata("resamples", {}, {}), **provenance})
     log.info("[evaluate] metrics for %d variants x %d steps, %.2f s", len(variants), K, time.perf_counter() - started)
 
     if cfg.record.enabled:
@@ -440,6 +442,7 @@ class Evaluated:
     summary: pl.DataFrame
     comparisons: pl.DataFrame
     per_run: pl.DataFrame
+    resamples: pl.DataFrame | None = None
 
 
 def evaluate_stage(cfg: DictConfig, study: Study, sensor: Any, truth: Any, estimates: dict[str, Any],
@@ -481,12 +484,12 @@ def _evaluate(cfg: DictConfig, study: Study, sensor: Any, truth: Any, estimates:
     rows += [summary_row(v, display[v], name, None, float(count), runs) for v in variants
              for name, count in faults[v].items()]
     uncertainty = cfg.get("uncertainty") or {}
-    summary, comparisons, per_run = summary_table(
+    summary, comparisons, per_run, resamples = summary_table(
         rows, ref, int(cfg.mc.seed), float(uncertainty.get("confidence", CONFIDENCE)),
         int(uncertainty.get("bootstrap_resamples", RESAMPLES)))
     # the tidy columns metric (the quantity), component, sensor, target (pipeline.metrics.breakdown)
     return Evaluated(with_breakdown(metrics_frame(truth.time, per_variant, runs)), with_breakdown(summary),
-                     with_breakdown(comparisons), with_breakdown(per_run))
+                     with_breakdown(comparisons), with_breakdown(per_run), resamples)
 
 
 def build_fault_checks(cfg: DictConfig) -> FaultChecks:

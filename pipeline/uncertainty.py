@@ -42,6 +42,7 @@ ACROSS_RUNS = ("rms", "mean", "sum", "median")
 OVER_STEPS = ("mean", "sum", "max", "pool")
 CONFIDENCE = 0.95
 RESAMPLES = 2000
+KEPT_RESAMPLES = 400                 # joint resamples stored with a run (resamples.parquet) for its targets
 FLOAT32_CELLS = 200_000           # runs x steps above which a metric's resampled sums are float32
 _BATCH_CELLS = 4_000_000          # resamples x steps per bootstrap batch: a few such arrays (32 MB each) at a time
 
@@ -538,6 +539,7 @@ def bootstrap_values(groups: Sequence[tuple[RunValues, Sequence[WindowStatistic]
     method[constant] = "constant"
     low[~finite], high[~finite], se[~finite] = np.nan, np.nan, np.nan
     method[~finite] = "none"
+    bootstrap_values.last_distribution = distribution      # the resamples themselves (summarize keeps some)
     return low, high, se, method
 
 
@@ -557,9 +559,11 @@ class Estimated:
 
 
 def summarize(rows: Sequence[Estimated], reference: str | None, seed: int, confidence: float = CONFIDENCE,
-              resamples: int = RESAMPLES) -> tuple[dict[int, Interval], list[dict]]:
+              resamples: int = RESAMPLES, kept: dict | None = None) -> tuple[dict[int, Interval], list[dict]]:
     """Intervals of every row (by its index in ``rows``) and the paired comparisons of each variant with
-    ``reference`` on every (series, window) both have (rows as dicts, see ``comparisons_schema``)."""
+    ``reference`` on every (series, window) both have (rows as dicts, see ``comparisons_schema``).
+    ``kept``: a dict that gets ``"values"``, the first ``KEPT_RESAMPLES`` joint resamples of every row
+    (rows x resamples: the same resampled runs for every row), which the report judges targets on."""
     from scipy import stats
 
     if not rows:
@@ -598,6 +602,8 @@ def summarize(rows: Sequence[Estimated], reference: str | None, seed: int, confi
     outputs = len(rows) + 2 * len(pairs)
     low, high, se, method = bootstrap_values(groups, runs, combine, outputs, stream_seed(seed, "summary"),
                                              confidence, resamples)
+    if kept is not None:
+        kept["values"] = bootstrap_values.last_distribution[:len(rows), :KEPT_RESAMPLES]
     intervals: dict[int, Interval] = {}
     points = [r.statistic.value() for r in rows]
     for i, r in enumerate(rows):

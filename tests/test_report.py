@@ -8,6 +8,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import polars as pl
 import pytest
 
@@ -172,3 +173,43 @@ def test_a_target_over_a_window_free_value_is_judged_on_its_value():
     spec = TargetSpec("c", "t", "p", """SELECT 'x' AS measured, COUNT(*) = 1 AS pass FROM summary""")
     result = evaluate_target(_tables_with(9.8, 9.4, 10.2), spec)
     assert result.verdict == "PASS" and "reads no summary interval" in result.interval_note
+
+
+def _tables_with_resamples(a: np.ndarray, b: np.ndarray, runs: int = 100):
+    """Summary values a[0], b[0] with joint resamples a[1:], b[1:] (the same resampled runs)."""
+    from pipeline.report import RunTables, pivot_summary, resampled_wide
+    summary = pl.DataFrame({"variant_key": ["a", "b"], "series": ["position_rmse"] * 2, "window": ["all"] * 2,
+                            "value": [a[0], b[0]], "ci_low": [a.min(), b.min()], "ci_high": [a.max(), b.max()]})
+    count = a.size - 1
+    resamples = pl.DataFrame({"variant_key": ["a"] * count + ["b"] * count, "series": ["position_rmse"] * 2 * count,
+                              "window": ["all"] * 2 * count, "resample": np.tile(np.arange(count), 2).astype(np.int16),
+                              "value": np.concatenate([a[1:], b[1:]])})
+    wide = pivot_summary(summary)
+    return RunTables(Path("."), "x", {}, {"runs": runs}, summary, pl.DataFrame(), wide, None, None, None,
+                     resampled_wide(wide, resamples))
+
+
+RATIO = TargetSpec("r", "a within 2 % of b", "p", """SELECT CAST("a:position_rmse" / "b:position_rmse" AS VARCHAR) AS measured,
+    ABS("a:position_rmse" / "b:position_rmse" - 1) < 0.02 AS pass FROM wide WHERE "window" = 'all'""")
+
+
+def test_a_paired_target_is_judged_on_joint_resamples_not_on_independent_intervals():
+    rng = np.random.default_rng(1)
+    common = 20.0 + rng.normal(0, 1.0, 401)                 # the runs' spread, shared by both variants
+    a, b = common * 1.001, common.copy()                     # a differs by 0.1 %, whatever the runs
+    result = evaluate_target(_tables_with_resamples(a, b), RATIO)
+    assert result.verdict == "PASS" and "100.0 % of 400" in result.interval_note
+    # the same values judged on independent corners could not decide: their intervals overlap widely
+    corners = _tables_with(a[0], a.min(), a.max())
+    assert evaluate_target(corners, THRESHOLD).verdict == "FAIL"   # (a ~ 20 > 10: a sanity check of the helper)
+
+
+def test_an_inconclusive_paired_target_names_the_runs_that_would_decide_it():
+    rng = np.random.default_rng(2)
+    common = 20.0 + rng.normal(0, 1.0, 401)
+    a = common * (1.015 + rng.normal(0, 0.005, 401))         # 1.5 % +- 0.5 %: z = 1 against the 2 % margin
+    a[0] = common[0] * 1.015
+    result = evaluate_target(_tables_with_resamples(a, common), RATIO)
+    assert result.verdict == "INCONCLUSIVE" and result.point_pass
+    runs = int(result.runs_to_decide.split()[1])
+    assert 250 <= runs <= 600                                 # (1.96 / ~1)^2 x 100 runs
