@@ -5,7 +5,9 @@
 Needs a Vulkan software renderer (Debian: apt-get install mesa-vulkan-drivers libvulkan1).
 The CLI's own `rerun --screenshot-to` shoots before a finished .rrd has loaded (empty views),
 so this starts the viewer headless, opens the file through ViewerClient, waits for loading to
-finish, optionally moves the time cursor, then saves the screenshot. Not a CI gate.
+finish, pauses the playback with the time cursor at ``--time`` (default: the end of the
+recording's ``time`` timeline, so that the same file always gives the same picture), then saves
+the screenshot. Not a CI gate.
 """
 
 from __future__ import annotations
@@ -23,11 +25,24 @@ def viewer_binary() -> str:
     return str(Path(rerun_cli.__file__).parent / "rerun")
 
 
+def shot_time(timelines, requested: float | None, timeline: str = "time") -> float | None:
+    """The time cursor [s] of the screenshot: ``requested``, else the end of ``timeline`` (a duration
+    timeline, ends in ns) among the viewer's ``timelines`` (objects with name, start, end); None when
+    neither is known (the viewer's own cursor is kept)."""
+    if requested is not None:
+        return float(requested)
+    for t in timelines:
+        if t.name == timeline and t.end is not None:
+            return t.end / 1e9
+    return None
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("rrd", type=Path)
     parser.add_argument("png", type=Path)
-    parser.add_argument("--time", type=float, default=None, help="time cursor [s] on the 'time' timeline")
+    parser.add_argument("--time", type=float, default=None,
+                        help="time cursor [s] on the 'time' timeline (default: the end of the recording)")
     parser.add_argument("--size", default="1600x900")
     parser.add_argument("--port", type=int, default=9877)
     args = parser.parse_args()
@@ -57,13 +72,21 @@ def main() -> int:
                 break
             time.sleep(0.2)
         time.sleep(1.0)
-        if args.time is not None:
-            client.set_time("time", duration=args.time, play_state="paused")
-            time.sleep(0.5)
+        state = client.get_state()
+        at = shot_time(state.recordings[0].timelines if state.recordings else [], args.time)
+        if at is not None:
+            client.set_time("time", duration=at, play_state="paused")
+        else:
+            try:
+                client.set_time(play_state="paused")
+            except ConnectionError:       # no timeline at all (static data only): nothing plays
+                pass
+        time.sleep(0.5)
         args.png.parent.mkdir(parents=True, exist_ok=True)
         client.save_screenshot(str(args.png.resolve()))   # the first paint can be incomplete
         time.sleep(1.0)
         client.save_screenshot(str(args.png.resolve()))
+        print(f"time cursor: {'the viewer default' if at is None else f't = {at:g} s'} (paused)")
         for view in client.get_state().views:
             problems = [r.summary for r in view.reports]
             print(f"{view.view_class:>16}  {view.name!r}{'  ' + str(problems) if problems else ''}")
