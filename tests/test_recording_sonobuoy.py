@@ -271,3 +271,17 @@ def test_half_a_cloud_raises(case, tmp_path):
         _write(case, tmp_path / "bad.rrd", estimates={"ammpf": TrackEstimate(est.time, est.state, est.covariance,
                                                                              extras)})
     assert not any(tmp_path.iterdir())
+
+
+def test_no_viewer_warning_while_writing(case, tmp_path, capfd):
+    """A blueprint property given without any component (an empty rrb.ScalarAxis() on the RMSE and
+    bound view, which a run with the PCRLB metrics gets) made Rerun print an ANSI-coloured 'Dropping
+    chunk without components ... /view/<uuid>/ScalarAxis' warning on every sonobuoy run."""
+    import polars as pl
+
+    rmse = case["metrics"].filter(pl.col("series") == "position_rmse")
+    bounds = [rmse.with_columns(pl.lit(name).alias("series"), pl.lit(name).alias("metric"))
+              for name in ("position_bound", "position_rmse_over_bound")]
+    _write(dict(case, metrics=pl.concat([case["metrics"], *bounds], how="diagonal_relaxed")), tmp_path / "quiet.rrd")
+    err = capfd.readouterr().err
+    assert "Dropping chunk" not in err and "WARN" not in err, err

@@ -509,7 +509,7 @@ def _sonobuoy_blueprint(rrb, record_runs: list[int], variant_keys: list[str], di
         tabs.append(rrb.TimeSeriesView(origin="/metrics", contents=["/metrics/position_rmse/**",
                                                                     "/metrics/position_bound/**",
                                                                     "/metrics/position_bound_model/**"],
-                                       axis_x=whole_run, plot_legend=legend, axis_y=rrb.ScalarAxis(),
+                                       axis_x=whole_run, plot_legend=legend,
                                        name="position RMSE and sqrt(PCRLB) [m] (truth's / filters' noise)"))
     be = rrb.encodings
     tabs.append(rrb.TextLogView(origin="/notes", name="Notes", columns=rrb.TextLogColumns(
