@@ -3,10 +3,11 @@ model-group switching and the Monte Carlo metrics, with a side-by-side blueprint
 
 Layout of the entity tree (``r`` = a recorded Monte Carlo run, ``v`` = a variant key)::
 
-    /world/run{r}/truth                   static trajectory + current true position
+    /world/run{r}/truth                   static whole trajectory (faint: the future) + current true position
+    /world/run{r}/truth/path              a segment per step (the views show them up to the time cursor)
     /world/run{r}/measurements            detections of the current scan (clutter coloured apart)
-    /world/run{r}/measurements/all        every scan's detections, static and faint
-    /world/run{r}/{v}/track               static estimated trajectory
+    /world/run{r}/measurements/all        every scan's detections, faint (shown up to the cursor)
+    /world/run{r}/{v}/track               estimated trajectory: a segment per step (up to the cursor)
     /world/run{r}/{v}/estimate            current estimate
     /world/run{r}/{v}/covariance          current 2-sigma position ellipse (polyline)
     /variants/{v}/run{r}/mode_probability/{model}
@@ -15,6 +16,8 @@ Layout of the entity tree (``r`` = a recorded Monte Carlo run, ``v`` = a variant
     /variants/{v}/run{r}/events           text log of group-set changes
     /metrics/{metric}/{v}                 Monte Carlo average per step
     /config                               markdown: description + config yaml
+    /key/variants, /key/models            colour keys: labelled points in the variants' (and the
+                                          models') colours; the plots have no legends
     /world/frames/...                     named frames the 2-D views look from: "north_up" (y up;
                                           Rerun draws 2-D y downwards) and "target_run{r}" (that
                                           run's true target position, y up) for the zoomed views
@@ -23,28 +26,35 @@ A truth with a ``z`` state (study 000: 9 states x, y, z, vx, ..., az; a radar wh
 range, azimuth, elevation, or already x, y, z) is recorded in 3-D instead, z up::
 
     /world/radar                          static marker at the sensor position
-    /world/run{r}/truth                   static LineStrips3D + current Points3D
+    /world/run{r}/truth                   static LineStrips3D (faint) + current Points3D; /path segments
     /world/run{r}/measurements            the scan's detections converted to Cartesian (Points3D)
-    /world/run{r}/measurements/all        every scan's detections, static and faint
-    /world/run{r}/{v}/track               static LineStrips3D
+    /world/run{r}/measurements/all        every scan's detections, faint (shown up to the cursor)
+    /world/run{r}/{v}/track               LineStrips3D segment per step (shown up to the cursor)
     /world/run{r}/{v}/estimate            Points3D per step
     /world/run{r}/{v}/covariance          Ellipsoids3D per step: 2-sigma of the position block
     /world/run{r}/{v}/detections          maneuver detections: TextLog line + Points3D marker at the
                                           estimate, at the detection step only (cleared the step after)
-    /world/run{r}/{v}/detections/all      every detection's estimate, static
+    /world/run{r}/{v}/detections/all      every detection's estimate (shown up to the cursor)
     /world/run{r}/{v}/detections/{x,y,z}  per LOS axis (variants with maneuver_detected_axis): an
                                           Arrows3D from the estimate along that LOS axis
     /variants/{v}/run{r}/input_level/{x,y,z}, /variants/{v}/run{r}/test_statistic[/{x,y,z}]
     /truth/run{r}/acceleration/{x,y,z}    the true acceleration, reference for the input level
+    /truth/run{r}/maneuver[s]             maneuver class of the truth (state at each change; log lines)
     /metrics/{metric}/{v}, /config, /world/frames/target_run{r} (no flip: 3-D views keep z up)
 
 Every time-varying entity has the timelines ``time`` (duration, s) and ``step`` (sequence) and is
 written with one ``send_columns`` call; only static things use ``log``. Rerun is imported lazily.
+
+What the viewer shows (issue 19): paths and tracks up to the time cursor (per-entity visible time
+ranges, pipeline.blueprint_parts), the rest of the true trajectory faint; one colour per variant
+(pipeline.colours, shared with the report and sweep figures) and colour keys instead of legends;
+titles fitted to their views on a 1600 x 900 window; the mode probabilities of every variant side by
+side. The colours, the widths that keep coinciding lines visible and the keys are in pipeline.colours
+and pipeline.blueprint_parts.
 """
 
 from __future__ import annotations
 
-import colorsys
 import re
 from contextlib import contextmanager
 from pathlib import Path
@@ -54,6 +64,9 @@ import numpy as np
 
 from filters.base import TrackEstimate
 from pipeline.metrics import axis_unit_of
+from pipeline.blueprint_parts import (fit_title, fit_titles, key_view, legend_in_quiet_corner, log_key, log_path, no_legend,
+    path_overrides, path_segments, whole_run, whole_run as whole_run_axis)
+from pipeline.colours import TRUTH_COLOUR, lighter as lighter_colour, model_colour, rerun_widths, variant_colour
 from pipeline.data import Detections, Truth
 from pipeline.errors import StorageError
 from pipeline.store import atomic_write_bytes
@@ -67,10 +80,9 @@ ELLIPSE_SIGMA = 2.0
 SPATIAL_METRICS = ("acceleration_rmse_x", "acceleration_rmse_y", "position_rmse")
 # a metric view is titled "<name> [<axis unit>]" from the metric registry (pipeline.metrics)
 
-# One colour per variant, in display order, used in every view (tracks, estimates, metric lines).
-_VARIANT_COLOURS = [(31, 119, 255), (255, 127, 14), (44, 200, 80), (214, 39, 40), (160, 103, 219),
-                    (23, 190, 207), (227, 119, 194), (188, 189, 34), (140, 86, 75), (127, 127, 127)]
-TRUTH_COLOUR = (235, 235, 235)
+# One colour per variant, in display order, used in every view (tracks, estimates, metric lines) and
+# in the report and sweep figures: pipeline.colours (variant_colour, TRUTH_COLOUR, lighter_colour and
+# model_colour are imported from there).
 _MEASUREMENT_COLOUR = (170, 170, 170)
 _CLUTTER_COLOUR = (220, 70, 70)
 _MEASUREMENT_FAINT = (95, 95, 95)
@@ -78,6 +90,10 @@ _CLUTTER_FAINT = (120, 50, 50)
 FRAMES_PATH = "/world/frames"
 NORTH_UP_FRAME = "north_up"
 PATH_SAFE = re.compile(r"^[A-Za-z0-9_.-]+$")
+FUTURE_ALPHA = 70                 # the whole true trajectory (where the target goes next), faint
+VARIANT_KEY = "/key/variants"     # colour keys (pipeline.blueprint_parts.log_key)
+MODEL_KEY = "/key/models"
+LEGEND_MAX = 5                    # a view of more lines than this gets no legend (a key names them)
 ENCODE_TIMEOUT_S = 300.0          # backstop for encoding the recording in memory (atomic_recording)
 
 
@@ -109,18 +125,6 @@ def recording_id(experiment: str) -> str:
 def target_frame(run: int) -> str:
     """Named transform frame centred on run ``run``'s true target position, y (north) up."""
     return f"target_run{run}"
-
-
-def variant_colour(i: int) -> tuple[int, int, int]:
-    if i < len(_VARIANT_COLOURS):
-        return _VARIANT_COLOURS[i]
-    r, g, b = colorsys.hsv_to_rgb((i * 0.61803398875) % 1.0, 0.75, 0.95)
-    return int(r * 255), int(g * 255), int(b * 255)
-
-
-def _model_colour(i: int, n: int) -> tuple[int, int, int]:
-    r, g, b = colorsys.hsv_to_rgb(i / max(n, 1), 0.7, 0.95)
-    return int(r * 255), int(g * 255), int(b * 255)
 
 
 def xy_index(names: Sequence[str], what: str) -> list[int]:
@@ -225,8 +229,10 @@ def write_recording(path: Path, *, experiment: str, truth: Truth, detections: De
 
     blueprint = _blueprint(rrb, truth, truth_xy, record_runs, variant_keys, display, metric_series,
                            estimates, has_config=True,
-                           noise_sigma=_noise_sigma(detections, meas_xy, record_runs[0] if record_runs else 0))
+                           noise_sigma=_noise_sigma(detections, meas_xy, record_runs[0] if record_runs else 0),
+                           models=_shared_model_names(estimates, model_names))
 
+    track_radii = track_radius(variant_keys)
     with atomic_recording(rr, path, experiment, blueprint) as rec:
         times = time_columns(rr)
 
@@ -238,15 +244,17 @@ def write_recording(path: Path, *, experiment: str, truth: Truth, detections: De
         log_north_up(rr, rec)
         for r in record_runs:
             world = f"/world/run{r}"
-            # ---- truth: whole trajectory (static) + current position --------------------------
+            # ---- truth: the path up to now, the whole trajectory faint, the current position -------
             xy = truth.state[r][..., truth_xy]                                   # (K, T, 2)
             K, T = xy.shape[:2]
             strips = [xy[:, t][np.isfinite(xy[:, t]).all(-1)] for t in range(T)]
-            rec.log(f"{world}/truth", rr.LineStrips2D(strips, colors=TRUTH_COLOUR, radii=ui(0.75),
-                                                      draw_order=16.0), static=True)
+            rec.log(f"{world}/truth", rr.LineStrips2D(strips, colors=(*TRUTH_COLOUR, FUTURE_ALPHA), radii=ui(0.5),
+                                                      draw_order=12.0), static=True)
             rec.log(f"{world}/truth", rr.Points2D.from_fields(colors=TRUTH_COLOUR, radii=ui(5.0),
                                                               draw_order=30.0), static=True)
             ok = np.isfinite(xy).all(-1)                                          # (K, T)
+            log_path(rr, rec, times, f"{world}/truth/path", truth.time, np.arange(K), xy, ok,
+                     colour=TRUTH_COLOUR, radius=0.9, draw_order=16.0)
             steps = np.nonzero(ok.any(-1))[0]
             rec.send_columns(f"{world}/truth", indexes=times(truth.time[steps], steps),
                              columns=rr.Points2D.columns(positions=xy[ok]).partition(ok[steps].sum(-1)))
@@ -270,11 +278,13 @@ def write_recording(path: Path, *, experiment: str, truth: Truth, detections: De
             ).partition(seen[steps].sum(-1))
             rec.log(f"{world}/measurements", rr.Points2D.from_fields(radii=ui(3.0), draw_order=20.0), static=True)
             rec.send_columns(f"{world}/measurements", indexes=times(detections.time[steps], steps), columns=cols)
-            # every scan's detections at once, faint: the noise cloud around the tracks when zoomed in
-            rec.log(f"{world}/measurements/all", rr.Points2D(
-                z[seen], radii=ui(1.5), draw_order=5.0,
-                colors=np.where(clutter[seen][:, None], _CLUTTER_FAINT, _MEASUREMENT_FAINT).astype(np.uint8)),
-                static=True)
+            # every scan's detections up to now, faint: the noise cloud around the tracks when zoomed in
+            rec.log(f"{world}/measurements/all", rr.Points2D.from_fields(radii=ui(1.5), draw_order=5.0), static=True)
+            rec.send_columns(f"{world}/measurements/all", indexes=times(detections.time[steps], steps),
+                             columns=rr.Points2D.columns(
+                                 positions=z[seen], colors=np.where(clutter[seen][:, None], _CLUTTER_FAINT,
+                                                                    _MEASUREMENT_FAINT).astype(np.uint8),
+                             ).partition(seen[steps].sum(-1)))
 
             # ---- per variant: track, estimate, covariance ellipse ------------------------------
             for key, est in estimates.items():
@@ -284,8 +294,8 @@ def write_recording(path: Path, *, experiment: str, truth: Truth, detections: De
                 P = est.covariance[r][:, truth_xy][:, :, truth_xy]                 # (K, 2, 2)
                 good = np.isfinite(pos).all(-1) & np.isfinite(P).all((-1, -2))
                 steps = np.nonzero(good)[0]
-                rec.log(f"{base}/track", rr.LineStrips2D([pos[good]], colors=colour, radii=ui(1.25),
-                                                         draw_order=15.0), static=True)
+                log_path(rr, rec, times, f"{base}/track", est.time, np.arange(est.time.size), pos, good,
+                         colour=colour, radius=track_radii[key], draw_order=15.0)
                 rec.log(f"{base}/estimate", rr.Points2D.from_fields(colors=colour, radii=ui(3.5),
                                                                     draw_order=40.0), static=True)
                 rec.send_columns(f"{base}/estimate", indexes=times(est.time[steps], steps),
@@ -300,7 +310,36 @@ def write_recording(path: Path, *, experiment: str, truth: Truth, detections: De
                 _log_variant_run(rr, rec, times, key, r, est, names, group_names)
 
         log_metric_series(rr, rec, times, metric_series)
+        log_keys(rr, rec, variant_keys, display, colours, _shared_model_names(estimates, model_names))
         log_config(rr, rec, experiment, description, config_text, record_runs, R)
+
+
+def track_radius(keys: Sequence[str]) -> dict[str, float]:
+    """key -> track line radius [ui points], by path order like the metric lines (pipeline.colours):
+    where several variants' tracks share a view and coincide, each stays visible."""
+    return {key: round(0.3 + 0.4 * w, 3) for key, w in rerun_widths(list(keys)).items()}
+
+
+def log_keys(rr, rec, variant_keys: Sequence[str], display: Mapping[str, str], colours: Mapping[str, Sequence[int]],
+             models: Sequence[str] | None = None, extra: Sequence[tuple[str, Sequence[int]]] = ()) -> None:
+    """The colour keys the blueprint shows instead of legends: the variants (+ ``extra`` entries)
+    at /key/variants and, when every variant runs the same models, the models at /key/models."""
+    log_key(rr, rec, VARIANT_KEY, [(display[k], colours[k]) for k in variant_keys] + list(extra))
+    if models:
+        log_key(rr, rec, MODEL_KEY, [(str(m), model_colour(i, len(models))) for i, m in enumerate(models)])
+
+
+def _shared_model_names(estimates: Mapping[str, TrackEstimate], model_names) -> list[str] | None:
+    """The model names every variant with mode probabilities shares (their colours are then the same
+    in every mode view and one key names them), or None."""
+    names = []
+    for key, est in estimates.items():
+        if "mode_probabilities" not in est.extras:
+            continue
+        M = np.shape(est.extras["mode_probabilities"])[-1]
+        mine = model_names.get(key) if isinstance(model_names, Mapping) else model_names
+        names.append(tuple(mine) if mine is not None else tuple(f"m{i + 1}" for i in range(M)))
+    return list(names[0]) if names and len(set(names)) == 1 else None
 
 
 def time_columns(rr):
@@ -341,11 +380,15 @@ def atomic_recording(rr, path: Path, experiment: str, blueprint,
         raise StorageError(f"{exc} Nothing was left under that name; {skip_hint}.") from None
 
 
-def log_metric_series(rr, rec, times, metric_series: dict) -> None:
+def log_metric_series(rr, rec, times, metric_series: dict, metric_widths: Mapping[str, float] | None = None) -> None:
     """Each metric under /metrics/<metric>/<variant>; a consistency band (``<m>_lower`` /
     ``<m>_upper``, evaluate.consistency_metrics) goes beside its metric, /metrics/<m>/<variant>_chi2_lower,
-    as a thin line in the variant's lighter colour, so the NEES view shows each variant with its band."""
+    as a thin line in the variant's lighter colour, so the NEES view shows each variant with its band.
+    Each variant's line has its width (pipeline.colours.rerun_widths: the first key in path order,
+    drawn first, widest), so coinciding curves stay visible; ``metric_widths`` fixes the width of
+    some metrics' lines instead (e.g. study 004's mean mode probabilities, one view per variant)."""
     metrics = {m for m, _ in metric_series}
+    widths = rerun_widths(list(dict.fromkeys(key for _, key in metric_series)))
     for (metric, key), series in metric_series.items():
         steps, t, values, name, colour = series
         base, _, side = str(metric).rpartition("_")
@@ -354,7 +397,7 @@ def log_metric_series(rr, rec, times, metric_series: dict) -> None:
             style = rr.SeriesLines(names=f"{name}: χ² 95 % {side}", colors=lighter_colour(colour, 0.5), widths=1.0)
         else:
             entity = f"/metrics/{path_part(metric)}/{key}"
-            style = rr.SeriesLines(names=name, colors=colour, widths=2.0)
+            style = rr.SeriesLines(names=name, colors=colour, widths=(metric_widths or {}).get(metric, widths[key]))
         rec.log(entity, style, static=True)
         rec.send_columns(entity, indexes=times(t, steps), columns=rr.Scalars.columns(scalars=values))
 
@@ -393,9 +436,9 @@ LIMIT_VIEWS = (("nees", "NEES (line: run average; thin: its χ² 95 % band)"),
 
 
 def _limit_views(rrb, present: set, whole_run) -> list:
-    """One view per limit metric the run has, each variant's line beside its band."""
-    legend = rrb.PlotLegend(corner="RightTop")
-    return [rrb.TimeSeriesView(origin=f"/metrics/{metric}", name=name, axis_x=whole_run, plot_legend=legend)
+    """One view per limit metric the run has, each variant's line beside its band (no legend: the
+    variants' key names the colours, the title the thin band lines)."""
+    return [rrb.TimeSeriesView(origin=f"/metrics/{metric}", name=name, axis_x=whole_run, plot_legend=no_legend(rrb))
             for metric, name in LIMIT_VIEWS if metric in present]
 
 
@@ -466,7 +509,7 @@ def _log_variant_run(rr, rec, times, key: str, r: int, est: TrackEstimate,
         for i, name in enumerate(names):
             entity = f"{base}/mode_probability/{path_part(name)}"
             steps = np.nonzero(np.isfinite(mu[:, i]))[0]
-            rec.log(entity, rr.SeriesLines(names=str(name), colors=_model_colour(i, M), widths=1.5), static=True)
+            rec.log(entity, rr.SeriesLines(names=str(name), colors=model_colour(i, M), widths=1.5), static=True)
             rec.send_columns(entity, indexes=times(t[steps], steps), columns=rr.Scalars.columns(scalars=mu[steps, i]))
     groups = _group_series(est, r)
     if groups is None:
@@ -490,10 +533,13 @@ def _log_variant_run(rr, rec, times, key: str, r: int, est: TrackEstimate,
 
 def _blueprint(rrb, truth: Truth, truth_xy: list[int], record_runs: list[int], variant_keys: list[str],
                display: Mapping[str, str], metric_series: dict, estimates: Mapping[str, TrackEstimate],
-               has_config: bool, noise_sigma: float = float("nan")):
-    """Top: per variant, a target-centred 2-D view over a whole-trajectory one (truth + measurements +
-    that variant). Middle: the RMSE plots of all variants. Bottom: tabs with each variant's mode
-    probabilities and groups, and the config."""
+               has_config: bool, noise_sigma: float = float("nan"), models: Sequence[str] | None = None):
+    """Top: per variant a target-centred 2-D view (truth, measurements, that variant), and one view of
+    the whole trajectories with every variant; tracks and the true path drawn up to the time cursor
+    (the rest of the true trajectory faint). Then the colour keys (variants; models when they share
+    one set), the RMSE plots, the mode probabilities of every variant side by side, and tabs with
+    the model groups (side by side), the limit views and the config. Plots have no legends (they
+    covered the lines and were cut): the keys name the colours."""
     r0 = record_runs[0] if record_runs else None
     xy = truth.state[record_runs][..., truth_xy].reshape(-1, 2)
     xy = xy[np.isfinite(xy).all(-1)]
@@ -510,36 +556,73 @@ def _blueprint(rrb, truth: Truth, truth_xy: list[int], record_runs: list[int], v
     if np.isfinite(noise_sigma) and noise_sigma > 0:
         follow_half = float(np.clip(10.0 * noise_sigma, 20.0, 5000.0))
     follow_bounds = rrb.VisualBounds2D(x_range=[-follow_half, follow_half], y_range=[-follow_half, follow_half])
+    axis = whole_run(rrb)
+    n = len(variant_keys)
 
+    rows, shares = [], []
     columns = []
-    for key in variant_keys:
-        everything = []
-        for r in record_runs:
-            everything += [f"/world/run{r}/truth", f"/world/run{r}/measurements/**", f"/world/run{r}/{key}/**"]
-        views = []
-        if r0 is not None:
-            views.append(rrb.Spatial2DView(
-                origin="/world", name=f"{display[key]} · run {r0}, centred on the target",
-                contents=[f"/world/run{r0}/truth", f"/world/run{r0}/measurements/**", f"/world/run{r0}/{key}/**"],
+    width = 1600.0 / (n + 1)
+    titles = fit_titles(width, [[f"{display[k]} · run {r0}, target-centred", f"{display[k]} · run {r0}", display[k]]
+                                for k in variant_keys])
+    if r0 is not None:
+        for key, title in zip(variant_keys, titles):
+            world = f"/world/run{r0}"
+            columns.append(rrb.Spatial2DView(
+                origin="/world", name=title,
+                contents=[f"{world}/truth/**", f"{world}/measurements/**", f"{world}/{key}/**"],
+                overrides=path_overrides(rrb, [f"{world}/truth/path", f"{world}/measurements/all",
+                                               f"{world}/{key}/track"]),
                 spatial_information=rrb.SpatialInformation(target_frame=target_frame(r0)),
                 visual_bounds=follow_bounds))
-        views.append(rrb.Spatial2DView(
-            origin="/world", contents=everything,
-            name=f"{display[key]} · {'runs ' + ', '.join(map(str, record_runs)) + ', ' if len(record_runs) > 1 else ''}"
-                 f"whole trajectory",
-            spatial_information=rrb.SpatialInformation(target_frame=NORTH_UP_FRAME), visual_bounds=overview_bounds))
-        columns.append(rrb.Vertical(*views, row_shares=[3.0, 2.0][: len(views)], name=display[key]))
-    rows = [rrb.Horizontal(*columns)]
-    shares = [6.0]
+    everything, paths = [], []
+    for r in record_runs:
+        world = f"/world/run{r}"
+        everything += [f"{world}/truth/**", f"{world}/measurements/**"] + [f"{world}/{k}/**" for k in variant_keys]
+        paths += [f"{world}/truth/path", f"{world}/measurements/all"] + [f"{world}/{k}/track" for k in variant_keys]
+    runs = f"runs {', '.join(map(str, record_runs))}" if len(record_runs) > 1 else f"run {r0}"
+    columns.append(rrb.Spatial2DView(
+        origin="/world", contents=everything, overrides=path_overrides(rrb, paths),
+        name=fit_title(width, f"{runs}: whole trajectory, every variant", "whole trajectory", "overview"),
+        spatial_information=rrb.SpatialInformation(target_frame=NORTH_UP_FRAME), visual_bounds=overview_bounds))
+    rows.append(rrb.Horizontal(*columns))
+    shares.append(4.8)
 
-    whole_run = rrb.TimeAxis(view_range=rrb.TimeRange(start=rrb.TimeRangeBoundary.infinite(),
-                                                      end=rrb.TimeRangeBoundary.infinite()))
+    labels = [display[k] for k in variant_keys]
+    keys = [key_view(rrb, VARIANT_KEY, labels, name="variants")]
+    key_shares = [sum(len(x) + 5 for x in labels)]
+    if models and any("mode_probabilities" in est.extras for est in estimates.values()):
+        keys.append(key_view(rrb, MODEL_KEY, list(models), name="models (mode probabilities)"))
+        key_shares.append(sum(len(str(x)) + 5 for x in models))
+    rows.append(rrb.Horizontal(*keys, column_shares=key_shares) if len(keys) > 1 else keys[0])
+    shares.append(0.5)
+
     present = [m for m in SPATIAL_METRICS if any(mk == m for mk, _ in metric_series)]
     if present:
         rows.append(rrb.Horizontal(*[
             rrb.TimeSeriesView(origin=f"/metrics/{path_part(m)}", name=f"{m} [{axis_unit_of(m)}]",
-                               axis_x=whole_run, plot_legend=rrb.PlotLegend(corner="RightTop"))
+                               axis_x=axis, plot_legend=no_legend(rrb))
             for m in present]))
+        shares.append(2.3)
+
+    modes = []
+    if r0 is not None:
+        with_modes = [k for k in variant_keys if "mode_probabilities" in estimates[k].extras]
+        w = 1600.0 / max(len(with_modes), 1)
+        for key in with_modes:
+            M = np.shape(estimates[key].extras["mode_probabilities"])[-1]
+            base = f"/variants/{key}/run{r0}/mode_probability"
+            if models or M > LEGEND_MAX:
+                legend = no_legend(rrb)
+            else:
+                mu = np.asarray(estimates[key].extras["mode_probabilities"][r0], dtype=np.float64)
+                t = np.asarray(estimates[key].time, dtype=np.float64)
+                legend = legend_in_quiet_corner(rrb, [(t, mu[:, i]) for i in range(M)], M, (0.0, 1.0))
+            modes.append(rrb.TimeSeriesView(
+                origin=base, axis_x=axis, axis_y=rrb.ScalarAxis(range=(0.0, 1.0)), plot_legend=legend,
+                name=fit_title(w, f"{display[key]}: mode probabilities (run {r0})", f"{display[key]}: P(mode), run {r0}",
+                               f"{display[key]}: P(mode)")))
+    if modes:
+        rows.append(rrb.Horizontal(*modes))
         shares.append(2.5)
 
     be = rrb.encodings
@@ -547,34 +630,31 @@ def _blueprint(rrb, truth: Truth, truth_xy: list[int], record_runs: list[int], v
         timeline_columns=[be.TimelineColumn("step"), be.TimelineColumn("time", visible=False)],
         text_log_columns=[be.TextLogColumn("Body"), be.TextLogColumn("EntityPath", visible=False),
                           be.TextLogColumn("LogLevel", visible=False)])
-    tabs, richest = [], None
+    tabs = []
     if r0 is not None:
-        for key in variant_keys:
-            est = estimates[key]
+        grouped = [k for k in variant_keys if _group_series(estimates[k], r0) is not None]
+        w = 1600.0 / max(len(grouped), 1)
+        parts = []
+        for key in grouped:
             base = f"/variants/{key}/run{r0}"
-            parts = []
-            if "mode_probabilities" in est.extras:
-                parts.append(rrb.TimeSeriesView(origin=f"{base}/mode_probability",
-                                                name=f"{display[key]}: mode probabilities (run {r0})",
-                                                axis_x=whole_run, axis_y=rrb.ScalarAxis(range=(0.0, 1.0)),
-                                                plot_legend=rrb.PlotLegend(corner="RightTop")))
-            if _group_series(est, r0) is not None:
-                parts.append(rrb.TimeSeriesView(origin=base, contents=[f"{base}/active_group",
-                                                                       f"{base}/candidate_group"],
-                                                name=f"{display[key]}: model group (run {r0})", axis_x=whole_run,
-                                                plot_legend=rrb.PlotLegend(corner="LeftTop")))
-                parts.append(rrb.TextLogView(origin=f"{base}/events", name=f"{display[key]}: group switches",
-                                             columns=event_columns))
-            if parts:
-                if richest is None and len(parts) > 1:
-                    richest = len(tabs)   # open on the first variant with groups: probabilities + groups + events
-                tabs.append(rrb.Horizontal(*parts, column_shares=[3.0, 1.6, 1.8][: len(parts)], name=display[key]))
-    tabs += _limit_views(rrb, {m for m, _ in metric_series}, whole_run)
+            parts.append(rrb.Horizontal(
+                rrb.TimeSeriesView(origin=base, contents=[f"{base}/active_group", f"{base}/candidate_group"],
+                                   name=fit_title(w * 0.6, f"{display[key]}: group, active yellow, candidate blue",
+                                                  f"{display[key]}: active / candidate group",
+                                                  f"{display[key]}: groups"),
+                                   axis_x=axis, plot_legend=no_legend(rrb)),
+                rrb.TextLogView(origin=f"{base}/events", name=fit_title(w * 0.4, f"{display[key]}: group switches",
+                                                                        "group switches", "switches"),
+                                columns=event_columns),
+                column_shares=[3.0, 2.0]))
+        if parts:
+            tabs.append(rrb.Horizontal(*parts, name="model groups (run %d)" % r0))
+    tabs += _limit_views(rrb, {m for m, _ in metric_series}, axis)
     if has_config:
         tabs.append(rrb.TextDocumentView(origin="/config", name="Config"))
     if tabs:
-        rows.append(rrb.Tabs(*tabs, active_tab=richest or 0))
-        shares.append(2.5)
+        rows.append(rrb.Tabs(*tabs, active_tab=0))
+        shares.append(2.2)
     return rrb.Blueprint(rrb.Vertical(*rows, row_shares=shares),
                          rrb.TimePanel(state="collapsed", timeline="time"),
                          rrb.BlueprintPanel(state="collapsed"), rrb.SelectionPanel(state="collapsed"))
@@ -586,7 +666,9 @@ def _blueprint(rrb, truth: Truth, truth_xy: list[int], record_runs: list[int], v
 
 AXES = ("x", "y", "z")
 RMSE_METRICS_3D = ("position_rmse", "velocity_rmse", "acceleration_rmse")
-_AXIS_COLOURS = {"x": (240, 80, 80), "y": (90, 210, 90), "z": (90, 140, 255)}   # LOS x, y, z arrows
+# LOS x, y, z (arrows, per-axis statistics and counts): shades of the variant's own colour, x darkest
+# (a variant keeps its one colour; red / green / blue would read as three other variants)
+AXIS_SHADES = {"x": 0.0, "y": 0.35, "z": 0.6}
 _RADAR_COLOUR = (255, 215, 0)
 _DETECTION_COLOUR = (255, 235, 60)
 _DETECTION_FAINT = (175, 160, 60)
@@ -680,10 +762,6 @@ def _los_axes(position: np.ndarray, origin: np.ndarray) -> np.ndarray:
                      np.stack([-ca * se, -sa * se, ce], -1)], -2)
 
 
-def lighter_colour(colour: tuple[int, int, int], amount: float = 0.45) -> tuple[int, int, int]:
-    return tuple(int(round(c + (255 - c) * amount)) for c in colour)  # type: ignore[return-value]
-
-
 def _fmt(value: float) -> str:
     return "n/a" if not np.isfinite(value) else f"{value:.3g}" if abs(value) < 1000 else f"{value:.0f}"
 
@@ -730,24 +808,24 @@ def _styled_3d_metric_series(metric_series: dict) -> dict:
     for (metric, key), (steps, t, values, name, colour) in metric_series.items():
         m = _AXIS_METRIC.match(str(metric))
         if m:
-            shade = {"x": 0.0, "y": 0.35, "z": 0.6}[m["axis"]]
+            shade = AXIS_SHADES[m["axis"]]
             name, colour = f"{name} · LOS {m['axis']}", lighter_colour(colour, shade)
         out[(metric, key)] = (steps, t, values, name, colour)
     return out
 
 
 def log_maneuvers(rr, rec, times, r: int, t: np.ndarray, codes: np.ndarray, names: Sequence[str]) -> None:
-    """A truth's maneuver class per scan on the timeline (/truth/run<r>/maneuver, the class's code)
-    and a log line where it changes (/truth/run<r>/maneuvers)."""
+    """A truth's maneuver class per scan on the timeline as a state (/truth/run<r>/maneuver: the
+    class's name at each change, drawn by a state-timeline view) and a log line where it changes
+    (/truth/run<r>/maneuvers)."""
     codes = np.asarray(codes).astype(np.int64)
-    steps = np.arange(codes.size)
-    legend = ", ".join(f"{i} {name.replace('_', '/')}" for i, name in enumerate(names))
-    rec.log(f"/truth/run{r}/maneuver", rr.SeriesLines(names=f"maneuver class ({legend})", colors=TRUTH_COLOUR,
-                                                     widths=1.5), static=True)
-    rec.send_columns(f"/truth/run{r}/maneuver", indexes=times(t, steps),
-                     columns=rr.Scalars.columns(scalars=codes.astype(np.float64)))
+    labels = [str(name).replace("_", " / ") for name in names]
+    greys = [(70 + int(120 * i / max(len(names) - 1, 1)),) * 3 for i in range(len(names))]
+    rec.log(f"/truth/run{r}/maneuver", rr.StateConfiguration(values=labels, labels=labels, colors=greys), static=True)
     changes = np.nonzero(np.diff(codes, prepend=-1))[0]
-    lines = [f"{names[codes[k]].replace('_', ' / ')} from t = {t[k]:.0f} s" for k in changes]
+    rec.send_columns(f"/truth/run{r}/maneuver", indexes=times(t[changes], changes),
+                     columns=rr.StateChange.columns(state=[labels[codes[k]] for k in changes]))
+    lines = [f"{labels[codes[k]]} from t = {t[k]:.0f} s" for k in changes]
     rec.send_columns(f"/truth/run{r}/maneuvers", indexes=times(t[changes], changes),
                      columns=rr.TextLog.columns(text=lines, level=["INFO"] * len(lines)))
 
@@ -755,8 +833,9 @@ def log_maneuvers(rr, rec, times, r: int, t: np.ndarray, codes: np.ndarray, name
 def log_map(rr, rec, times, ui, r: int, t: np.ndarray, truth_xyz: np.ndarray, origin: np.ndarray,
             to_geodetic: Callable[[np.ndarray], np.ndarray], tracks: Mapping[str, np.ndarray],
             colours: Mapping[str, Sequence[int]], display: Mapping[str, str]) -> None:
-    """Run r on a map (/map/run<r>/...): the truth and each track as geographic lines and their
-    current points, the radar as a point. ``to_geodetic``: (N, 3) -> (N, 2) latitude, longitude."""
+    """Run r on a map (/map/run<r>/...): the truth and each track as geographic lines (a segment per
+    step at ``<name>/path``, shown up to the time cursor) and their current points, the radar as a
+    point. ``to_geodetic``: (N, 3) -> (N, 2) latitude, longitude."""
     rec.log("/map/radar", rr.GeoPoints(lat_lon=to_geodetic(origin[None]), radii=ui(6.0), colors=_RADAR_COLOUR),
             static=True)
     for name, xyz, colour in [("truth", truth_xyz, TRUTH_COLOUR)] + \
@@ -766,8 +845,14 @@ def log_map(rr, rec, times, ui, r: int, t: np.ndarray, truth_xyz: np.ndarray, or
             continue
         lat_lon = to_geodetic(xyz[ok])
         entity = f"/map/run{r}/{name}"
-        rec.log(f"{entity}/path", rr.GeoLineStrings(lat_lon=[lat_lon], radii=ui(1.0), colors=colour), static=True)
         steps = np.nonzero(ok)[0]
+        geo = np.full(xyz.shape[:-1] + (2,), np.nan)
+        geo[ok] = lat_lon
+        rows, counts, segments = path_segments(geo)
+        rec.log(f"{entity}/path", rr.GeoLineStrings.from_fields(radii=ui(1.0), colors=colour), static=True)
+        if rows.size:
+            rec.send_columns(f"{entity}/path", indexes=times(t[rows], rows),
+                             columns=rr.GeoLineStrings.columns(line_strings=segments).partition(counts))
         rec.log(entity, rr.GeoPoints.from_fields(radii=ui(5.0), colors=colour), static=True)
         rec.send_columns(entity, indexes=times(t[steps], steps), columns=rr.GeoPoints.columns(positions=lat_lon))
 
@@ -790,9 +875,12 @@ def _write_recording_3d(path: Path, *, experiment: str, truth: Truth, detections
     import rerun as rr  # lazily: ~0.6 s
     import rerun.blueprint as rrb
 
+    key_extra = _key_extra_3d(sigma)
     blueprint = _blueprint_3d(rrb, truth, t_xyz, origin, record_runs, estimates, display, metric_series, sigma,
-                              maneuvers=maneuvers is not None, geographic=to_geodetic is not None)
+                              maneuvers=maneuvers is not None, geographic=to_geodetic is not None,
+                              key_extra=key_extra)
 
+    track_radii = track_radius(variant_keys)
     with atomic_recording(rr, path, experiment, blueprint) as rec:
         times = time_columns(rr)
         ui = rr.Radius.ui_points
@@ -801,13 +889,16 @@ def _write_recording_3d(path: Path, *, experiment: str, truth: Truth, detections
                                             show_labels=True), static=True)
         for r in record_runs:
             world = f"/world/run{r}"
-            # ---- truth: whole trajectory (static) + current position; target-centred frame ------
+            # ---- truth: path up to now, whole trajectory faint, current position; target frame ---
             xyz = truth.state[r][..., t_xyz]                                     # (K, T, 3)
             T = xyz.shape[1]
             strips = [xyz[:, t][np.isfinite(xyz[:, t]).all(-1)] for t in range(T)]
-            rec.log(f"{world}/truth", rr.LineStrips3D(strips, colors=TRUTH_COLOUR, radii=ui(1.0)), static=True)
+            rec.log(f"{world}/truth", rr.LineStrips3D(strips, colors=(*TRUTH_COLOUR, FUTURE_ALPHA), radii=ui(0.6)),
+                    static=True)
             rec.log(f"{world}/truth", rr.Points3D.from_fields(colors=TRUTH_COLOUR, radii=ui(6.0)), static=True)
             ok = np.isfinite(xyz).all(-1)                                        # (K, T)
+            log_path(rr, rec, times, f"{world}/truth/path", truth.time, np.arange(truth.time.size), xyz, ok,
+                     colour=TRUTH_COLOUR, radius=1.0)
             steps = np.nonzero(ok.any(-1))[0]
             rec.send_columns(f"{world}/truth", indexes=times(truth.time[steps], steps),
                              columns=rr.Points3D.columns(positions=xyz[ok]).partition(ok[steps].sum(-1)))
@@ -831,13 +922,17 @@ def _write_recording_3d(path: Path, *, experiment: str, truth: Truth, detections
                                  colors=np.where(clutter[seen][:, None], _CLUTTER_COLOUR,
                                                  _MEASUREMENT_COLOUR).astype(np.uint8),
                              ).partition(seen[steps].sum(-1)))
-            rec.log(f"{world}/measurements/all", rr.Points3D(
-                z[seen], radii=ui(1.5),
-                colors=np.where(clutter[seen][:, None], _CLUTTER_FAINT, _MEASUREMENT_FAINT).astype(np.uint8)),
-                static=True)
+            # every scan's detections up to now, faint
+            rec.log(f"{world}/measurements/all", rr.Points3D.from_fields(radii=ui(1.5)), static=True)
+            rec.send_columns(f"{world}/measurements/all", indexes=times(detections.time[steps], steps),
+                             columns=rr.Points3D.columns(
+                                 positions=z[seen], colors=np.where(clutter[seen][:, None], _CLUTTER_FAINT,
+                                                                    _MEASUREMENT_FAINT).astype(np.uint8),
+                             ).partition(seen[steps].sum(-1)))
 
             for key, est in estimates.items():
-                _log_variant_3d(rr, rec, times, ui, key, r, est, t_xyz, colours[key], display[key], origin, sigma)
+                _log_variant_3d(rr, rec, times, ui, key, r, est, t_xyz, colours[key], display[key], origin, sigma,
+                                track_radii[key])
             if maneuvers is not None:
                 log_maneuvers(rr, rec, times, r, truth.time, np.asarray(truth.labels["maneuver"][r])[:, 0], maneuvers)
             if to_geodetic is not None:
@@ -854,18 +949,20 @@ def _write_recording_3d(path: Path, *, experiment: str, truth: Truth, detections
                                      columns=rr.Scalars.columns(scalars=acc[steps, i]))
 
         log_metric_series(rr, rec, times, metric_series)
+        log_keys(rr, rec, variant_keys, display, colours, extra=key_extra)
         log_config(rr, rec, experiment, description, config_text, record_runs, R)
 
 
 def _log_variant_3d(rr, rec, times, ui, key: str, r: int, est: TrackEstimate, t_xyz: list[int],
-                    colour: tuple[int, int, int], name: str, origin: np.ndarray, sigma: float) -> None:
+                    colour: tuple[int, int, int], name: str, origin: np.ndarray, sigma: float,
+                    track_radius: float = 1.25) -> None:
     base = f"/world/run{r}/{key}"
     t = est.time
     pos = est.state[r][:, t_xyz]                                                  # (K, 3)
     P = est.covariance[r][:, t_xyz][:, :, t_xyz]                                  # (K, 3, 3)
     good = np.isfinite(pos).all(-1) & np.isfinite(P).all((-1, -2))
     steps = np.nonzero(good)[0]
-    rec.log(f"{base}/track", rr.LineStrips3D([pos[good]], colors=colour, radii=ui(1.25)), static=True)
+    log_path(rr, rec, times, f"{base}/track", t, np.arange(t.size), pos, good, colour=colour, radius=track_radius)
     rec.log(f"{base}/estimate", rr.Points3D.from_fields(colors=colour, radii=ui(5.0)), static=True)
     rec.send_columns(f"{base}/estimate", indexes=times(t[steps], steps), columns=rr.Points3D.columns(positions=pos[good]))
     rec.log(f"{base}/covariance", rr.Ellipsoids3D.from_fields(colors=colour, line_radii=ui(1.0),
@@ -894,8 +991,9 @@ def _log_variant_3d(rr, rec, times, ui, key: str, r: int, est: TrackEstimate, t_
         rec.send_columns(f"{base}/detections", indexes=times(t[mark], mark),
                          columns=rr.Points3D.columns(positions=pos[mark[hit]], labels=labels)
                          .partition(hit.astype(np.int64)))
-        # every detection of the run at once (static, faint): where along the track the test fired
-        rec.log(f"{base}/detections/all", rr.Points3D(pos[ev], colors=_DETECTION_FAINT, radii=ui(3.0)), static=True)
+        # every detection of the run up to now (faint): where along the track the test fired
+        rec.log(f"{base}/detections/all", rr.Points3D.from_fields(colors=_DETECTION_FAINT, radii=ui(3.0)), static=True)
+        rec.send_columns(f"{base}/detections/all", indexes=times(t[ev], ev), columns=rr.Points3D.columns(positions=pos[ev]))
         if axis is not None:
             # per LOS axis (variant C): an arrow from the estimate along the axis that fired
             length = 3.0 * sigma if np.isfinite(sigma) and sigma > 0 else 100.0
@@ -903,7 +1001,7 @@ def _log_variant_3d(rr, rec, times, ui, key: str, r: int, est: TrackEstimate, t_
             for i, a in enumerate(AXES):
                 fired = hit & axis[mark, i]
                 entity = f"{base}/detections/{a}"
-                rec.log(entity, rr.Arrows3D.from_fields(colors=_AXIS_COLOURS[a], radii=ui(2.0),
+                rec.log(entity, rr.Arrows3D.from_fields(colors=lighter_colour(colour, AXIS_SHADES[a]), radii=ui(2.0),
                                                         show_labels=True), static=True)
                 rec.send_columns(entity, indexes=times(t[mark], mark), columns=rr.Arrows3D.columns(
                     origins=pos[mark[fired]], vectors=length * los[fired, i], labels=[f"LOS {a}"] * int(fired.sum()),
@@ -922,12 +1020,24 @@ def _log_variant_3d(rr, rec, times, ui, key: str, r: int, est: TrackEstimate, t_
     if "test_statistic" in est.extras:
         s = np.asarray(est.extras["test_statistic"][r], dtype=np.float64)
         parts = [(f"{series}/test_statistic", s, name, colour)] if s.ndim == 1 else [
-            (f"{series}/test_statistic/{a}", s[:, i], f"{name} LOS {a}", _AXIS_COLOURS[a])
+            (f"{series}/test_statistic/{a}", s[:, i], f"{name} LOS {a}", lighter_colour(colour, AXIS_SHADES[a]))
             for i, a in enumerate(AXES)]
         for entity, values, label, c in parts:
             steps = np.nonzero(np.isfinite(values))[0]
             rec.log(entity, rr.SeriesLines(names=label, colors=c, widths=1.5), static=True)
             rec.send_columns(entity, indexes=times(t[steps], steps), columns=rr.Scalars.columns(scalars=values[steps]))
+
+
+def _follow_half_3d(sigma: float) -> float:
+    """Half size [m] of the target-centred 3-D views: about 6 measurement sigmas."""
+    return float(np.clip(6.0 * sigma, 20.0, 5000.0)) if np.isfinite(sigma) and sigma > 0 else 300.0
+
+
+def _key_extra_3d(sigma: float) -> list:
+    """Key entries beside the variants: the truth (its path, its acceleration in the input-level
+    views) and the spacing of the grid in the target-centred views. Per-axis lines are shades of
+    their variant's colour, named in their views' titles."""
+    return [("truth", TRUTH_COLOUR), (f"grid {_round_spacing(_follow_half_3d(sigma) / 2.0):g} m", (110, 110, 110))]
 
 
 def _round_spacing(x: float) -> float:
@@ -968,7 +1078,7 @@ def _view_direction(track: np.ndarray, sensor: np.ndarray) -> np.ndarray:
 
 def _blueprint_3d(rrb, truth: Truth, t_xyz: list[int], origin: np.ndarray, record_runs: list[int],
                   estimates: Mapping[str, TrackEstimate], display: Mapping[str, str], metric_series: dict,
-                  sigma: float, maneuvers: bool = False, geographic: bool = False):
+                  sigma: float, maneuvers: bool = False, geographic: bool = False, key_extra: Sequence = ()):
     """Top: per variant, a target-centred 3-D view (truth + measurements + that variant). Then the RMSE
     curves of all variants and the detections per step; the mean (and run r0's) input level per axis
     beside tabs with each variant's detection log and test statistic, NEES and the config."""
@@ -977,7 +1087,7 @@ def _blueprint_3d(rrb, truth: Truth, t_xyz: list[int], origin: np.ndarray, recor
     # Camera: a fixed offset from the target (the views look from the frame that follows it), so that
     # about +-6 measurement sigmas around it are in view: single detections, the 2-sigma ellipsoids
     # and the estimation errors are visible although the track spans kilometres.
-    half = float(np.clip(6.0 * sigma, 20.0, 5000.0)) if np.isfinite(sigma) and sigma > 0 else 300.0
+    half = _follow_half_3d(sigma)
     track = truth.state[r0][:, 0][:, t_xyz] if r0 is not None else np.empty((0, 3))
     eye = rrb.EyeControls3D(kind=rrb.Eye3DKind.Orbital, position=2.0 * half * _view_direction(track, origin),
                             look_target=[0.0, 0.0, 0.0], eye_up=[0.0, 0.0, 1.0])
@@ -985,23 +1095,29 @@ def _blueprint_3d(rrb, truth: Truth, t_xyz: list[int], origin: np.ndarray, recor
     spacing = _round_spacing(half / 2.0)
     grid = rrb.LineGrid3D(visible=True, spacing=spacing, stroke_width=1.0, color=[90, 90, 90, 110])
     columns = []
-    for key in variant_keys:
+    titles = fit_titles(1600.0 / max(len(variant_keys), 1), [
+        [f"{display[k]} · run {r0}, target-centred (grid {spacing:g} m)", f"{display[k]} · run {r0} (grid {spacing:g} m)",
+         f"{display[k]} (grid {spacing:g} m)", display[k]] for k in variant_keys])
+    for key, title in zip(variant_keys, titles):
         if r0 is None:
             break
+        world = f"/world/run{r0}"
         columns.append(rrb.Spatial3DView(
-            origin="/world", name=f"{display[key]} · run {r0}, centred on the target (grid {spacing:g} m)",
-            contents=[f"/world/run{r0}/truth", f"/world/run{r0}/measurements/**", f"/world/run{r0}/{key}/**",
-                      "/world/radar"],
+            origin="/world", name=title,
+            contents=[f"{world}/truth/**", f"{world}/measurements/**", f"{world}/{key}/**", "/world/radar"],
+            overrides=path_overrides(rrb, [f"{world}/truth/path", f"{world}/measurements/all", f"{world}/{key}/track",
+                                           f"{world}/{key}/detections/all"]),
             spatial_information=rrb.SpatialInformation(target_frame=target_frame(r0)),
             eye_controls=eye, line_grid=grid))
     rows, shares = [], []
     if columns:
         rows.append(rrb.Horizontal(*columns))
         shares.append(5.0)
+    rows.append(key_view(rrb, VARIANT_KEY, [display[k] for k in variant_keys] + [label for label, _ in key_extra]))
+    shares.append(0.5)
 
-    whole_run = rrb.TimeAxis(view_range=rrb.TimeRange(start=rrb.TimeRangeBoundary.infinite(),
-                                                      end=rrb.TimeRangeBoundary.infinite()))
-    legend = rrb.PlotLegend(corner="RightTop")
+    whole_run = whole_run_axis(rrb)
+    legend = no_legend(rrb)           # the key names the variants' colours
     present = {m for m, _ in metric_series}
     plots = [rrb.TimeSeriesView(origin=f"/metrics/{m}", name=f"{m} [{axis_unit_of(m)}]", axis_x=whole_run,
                                 plot_legend=legend) for m in RMSE_METRICS_3D if m in present]
@@ -1023,27 +1139,37 @@ def _blueprint_3d(rrb, truth: Truth, t_xyz: list[int], origin: np.ndarray, recor
             # nine lines: no legend (it would cover them); the colours are the variants' everywhere
             bottom.append(rrb.TimeSeriesView(
                 origin="/", contents=contents, axis_x=whole_run, plot_legend=rrb.PlotLegend(visible=False),
-                name=f"input level {a} [m/s²]: mean" + (f", run {r0}, truth" if r0 is not None else "")))
+                name=f"input {a} [m/s²]: mean" + (f", run {r0}, truth" if r0 is not None else "")))
     be = rrb.encodings
     log_columns = rrb.TextLogColumns(
         timeline_columns=[be.TimelineColumn("step"), be.TimelineColumn("time", visible=False)],
         text_log_columns=[be.TextLogColumn("Body"), be.TextLogColumn("EntityPath", visible=False),
                           be.TextLogColumn("LogLevel", visible=False)])
     tabs = []
+    tab_width = 1600.0 * 2.8 / (2.0 * len(bottom) + 2.8)
     if r0 is not None:
         for key in variant_keys:
             est = estimates[key]
             parts = []
-            if "test_statistic" in est.extras:
-                parts.append(rrb.TimeSeriesView(origin=f"/variants/{key}/run{r0}/test_statistic",
-                                                name=f"{display[key]}: test statistic (run {r0})",
-                                                axis_x=whole_run, plot_legend=legend))
             axis_counts = [f"/metrics/detections_axis_{a}/{key}" for a in AXES
                            if (f"detections_axis_{a}", key) in metric_series]
+            w = tab_width / (("test_statistic" in est.extras) + bool(axis_counts) or 1)
+            if "test_statistic" in est.extras:
+                per_axis = np.ndim(est.extras["test_statistic"]) == 3
+                shades = ", LOS x dark, y, z light" if per_axis else ""
+                parts.append(rrb.TimeSeriesView(origin=f"/variants/{key}/run{r0}/test_statistic",
+                                                name=fit_title(w, f"{display[key]}: test statistic (run {r0}){shades}",
+                                                               f"{display[key]}: test statistic{shades}",
+                                                               f"{display[key]}: statistic"),
+                                                axis_x=whole_run, plot_legend=legend))
             if axis_counts:
                 parts.append(rrb.TimeSeriesView(origin="/metrics", contents=axis_counts, axis_x=whole_run,
                                                 plot_legend=legend,
-                                                name=f"{display[key]}: detections per LOS axis (all runs)"))
+                                                name=fit_title(w, f"{display[key]}: detections per LOS axis (all runs), "
+                                                                  f"x dark, y, z light",
+                                                               f"{display[key]}: detections per LOS axis, x dark",
+                                                               f"{display[key]}: per-axis detections",
+                                                               f"{display[key]}: LOS detections")))
             if parts:
                 parts = [rrb.Horizontal(*parts)] if len(parts) > 1 else parts
             if _detection_events(est, r0) is not None:
@@ -1054,22 +1180,26 @@ def _blueprint_3d(rrb, truth: Truth, t_xyz: list[int], origin: np.ndarray, recor
                 tabs.append(rrb.Vertical(*parts, name=display[key]))
     if geographic and r0 is not None:
         tabs.insert(0, rrb.MapView(origin="/map", name=f"map: truth, tracks and radar (run {r0})",
-                                   contents=["/map/radar", f"/map/run{r0}/**"]))
+                                   contents=["/map/radar", f"/map/run{r0}/**"],
+                                   overrides=path_overrides(rrb, [f"/map/run{r0}/{name}/path"
+                                                                  for name in ["truth", *variant_keys]])))
     if maneuvers and r0 is not None:
         tabs.insert(0, rrb.Vertical(
-            rrb.TimeSeriesView(origin=f"/truth/run{r0}/maneuver", name=f"maneuver class of the truth (run {r0})",
-                               axis_x=whole_run, plot_legend=legend),
+            rrb.StateTimelineView(origin=f"/truth/run{r0}/maneuver", name=f"maneuver of the truth (run {r0})",
+                                  time_view=whole_run),
             rrb.TextLogView(origin=f"/truth/run{r0}/maneuvers", name="maneuver changes", columns=log_columns),
             name="maneuvers"))
     tabs += _limit_views(rrb, present, whole_run)
-    overview = [f"/world/run{r}/truth" for r in record_runs] + ["/world/radar"] + \
+    overview = [f"/world/run{r}/truth/**" for r in record_runs] + ["/world/radar"] + \
+        [f"/world/run{r}/{k}/track" for r in record_runs for k in variant_keys]
+    overview_paths = [f"/world/run{r}/truth/path" for r in record_runs] + \
         [f"/world/run{r}/{k}/track" for r in record_runs for k in variant_keys]
     pts = np.concatenate([truth.state[record_runs][..., t_xyz].reshape(-1, 3), origin[None]])
     pts = pts[np.isfinite(pts).all(-1)]
     lo, hi = pts.min(0), pts.max(0)
     extent = max(float(np.max(hi - lo)), 100.0)
     tabs.append(rrb.Spatial3DView(
-        origin="/world", contents=overview, name="whole trajectories and radar",
+        origin="/world", contents=overview, name="trajectories and radar", overrides=path_overrides(rrb, overview_paths),
         eye_controls=rrb.EyeControls3D(kind=rrb.Eye3DKind.Orbital, look_target=(lo + hi) / 2,
                                        position=(lo + hi) / 2 + 2.0 * extent * _view_direction(track, origin),
                                        eye_up=[0.0, 0.0, 1.0]),

@@ -113,11 +113,15 @@ def test_world_entities(entities, case):
     for r in RECORD:
         world = f"/world/run{r}"
         truth = _time_varying(entities, f"{world}/truth", "Points2D:positions")
-        assert "LineStrips2D:strips" in truth["static"]
+        assert "LineStrips2D:strips" in truth["static"]             # the whole trajectory, faint
         assert truth["rows"] == K
+        assert _time_varying(entities, f"{world}/truth/path", "LineStrips2D:strips")["rows"] == K - 1
         assert _time_varying(entities, f"{world}/measurements", "Points2D:positions")["rows"] == K
+        assert _time_varying(entities, f"{world}/measurements/all", "Points2D:positions")["rows"] == K
         for key in VARIANTS:
-            assert "LineStrips2D:strips" in entities[f"{world}/{key}/track"]["static"]
+            track = _time_varying(entities, f"{world}/{key}/track", "LineStrips2D:strips")
+            assert "LineStrips2D:strips" not in track["static"], "a static track shows the future"
+            assert track["rows"] == K - 2                              # estimates from scan 1: segments from 2
             est = _time_varying(entities, f"{world}/{key}/estimate", "Points2D:positions")
             assert est["rows"] == K - 1            # no estimate at scan 0
             _time_varying(entities, f"{world}/{key}/covariance", "LineStrips2D:strips")
@@ -305,10 +309,12 @@ def test_3d_world_entities(entities3d):
         world = f"/world/run{r}"
         truth = _time_varying(entities3d, f"{world}/truth", "Points3D:positions")
         assert "LineStrips3D:strips" in truth["static"] and truth["rows"] == K
+        assert _time_varying(entities3d, f"{world}/truth/path", "LineStrips3D:strips")["rows"] == K - 1
         assert _time_varying(entities3d, f"{world}/measurements", "Points3D:positions")["rows"] == K
-        assert "Points3D:positions" in entities3d[f"{world}/measurements/all"]["static"]
+        assert _time_varying(entities3d, f"{world}/measurements/all", "Points3D:positions")["rows"] == K
         for key in VARIANTS_3D:
-            assert "LineStrips3D:strips" in entities3d[f"{world}/{key}/track"]["static"]
+            track = _time_varying(entities3d, f"{world}/{key}/track", "LineStrips3D:strips")
+            assert "LineStrips3D:strips" not in track["static"], "a static track shows the future"
             assert _time_varying(entities3d, f"{world}/{key}/estimate", "Points3D:positions")["rows"] == K - 1
             cov = _time_varying(entities3d, f"{world}/{key}/covariance", "Ellipsoids3D:half_sizes")
             assert {"Ellipsoids3D:quaternions", "Ellipsoids3D:centers"} <= cov["temporal"]
@@ -326,7 +332,8 @@ def test_3d_world_entities(entities3d):
         _time_varying(entities3d, f"/world/run0/c/detections/{a}", "Arrows3D:vectors")
         assert f"/world/run0/a/detections/{a}" not in entities3d
     assert not any(p.startswith("/world/run1/") for p in entities3d), "run 1 was not asked for"
-    two_d = {p for p, e in entities3d.items() if any("2D:" in c for c in e["static"] | e["temporal"])}
+    two_d = {p for p, e in entities3d.items() if any("2D:" in c for c in e["static"] | e["temporal"])
+             and not p.startswith("/key/")}               # the colour key is a 2-D strip of labelled points
     assert not two_d, f"2-D archetypes in a 3-D recording: {sorted(two_d)}"
 
 
@@ -411,3 +418,94 @@ def test_3d_record_runs_validated(case3d, tmp_path, bad):
     with pytest.raises(ValueError, match=r"record\.runs"):
         _write3d(case3d, tmp_path / "bad.rrd", record_runs=bad)
     assert not any(tmp_path.iterdir())
+
+
+# ---- issue 19: what the viewer shows (checked on the blueprint and the data, without pixels) ------
+from pipeline.blueprint_parts import title_chars                                     # noqa: E402
+from pipeline.colours import model_colour, variant_colour                            # noqa: E402
+from tests.rrd_reading import (blueprint_views, capture_blueprint, legend_visible, read_chunks,  # noqa: E402
+                               rows as chunk_rows, up_to_now)
+
+
+@pytest.fixture(scope="module")
+def blueprint2d(case, tmp_path_factory):
+    return capture_blueprint(lambda: _write(case, tmp_path_factory.mktemp("bp") / "s1.rrd"))
+
+
+@pytest.fixture(scope="module")
+def blueprint3d(case3d, tmp_path_factory):
+    return capture_blueprint(lambda: _write3d(case3d, tmp_path_factory.mktemp("bp3") / "mie.rrd"))
+
+
+def _kinds(parents) -> list[str]:
+    return [str(p.kind) for p in parents]
+
+
+def test_mode_probabilities_of_every_variant_side_by_side(blueprint2d):
+    modes = [(v, parents) for v, parents, _ in blueprint_views(blueprint2d)
+             if str(v.origin).endswith("/mode_probability")]
+    assert [str(v.origin) for v, _ in modes] == [f"/variants/{k}/run0/mode_probability" for k in VARIANTS]
+    assert all("Tabs" not in _kinds(parents) for _, parents in modes), "a mode view sits in a tab: one at a time"
+    assert len({id(parents[-1]) for _, parents in modes}) == 1 and str(modes[0][1][-1].kind) == "Horizontal"
+
+
+def test_plots_have_no_legend_and_the_keys_name_the_colours(blueprint2d, rrd, case):
+    plots = [v for v, _, _ in blueprint_views(blueprint2d) if v.class_identifier == "TimeSeries"]
+    assert plots and all(legend_visible(v) is False for v in plots), \
+        [str(v.name) for v in plots if legend_visible(v) is not False]
+    chunks = read_chunks(rrd)
+    key = {p: df for p, static, _, df in chunks if p.startswith("/key/") and static}
+    labels = key["/key/variants"]["Points2D:labels"].explode().to_list()
+    colours = key["/key/variants"]["Points2D:colors"].explode().to_list()
+    assert labels == list(VARIANTS.values())
+    assert [((c >> 24) & 255, (c >> 16) & 255, (c >> 8) & 255) for c in colours] == \
+        [variant_colour(i) for i in range(len(VARIANTS))]
+    names = list(case["models"].names)
+    assert key["/key/models"]["Points2D:labels"].explode().to_list() == names
+    # the mode lines are in the key's colours
+    style = {p.rsplit("/", 1)[1]: df["SeriesLines:colors"].explode()[0] for p, static, _, df in chunks
+             if static and p.startswith("/variants/fsimm/run0/mode_probability/")}
+    assert {n: ((c >> 24) & 255, (c >> 16) & 255, (c >> 8) & 255) for n, c in style.items()} == \
+        {n: model_colour(i, len(names)) for i, n in enumerate(names)}
+
+
+@pytest.mark.parametrize("which", ["2d", "3d"])
+def test_every_title_fits_its_view(which, blueprint2d, blueprint3d):
+    blueprint = blueprint2d if which == "2d" else blueprint3d
+    too_long = [(str(v.name), round(w)) for v, _, w in blueprint_views(blueprint)
+                if v.name is not None and v.titlebar is None and len(str(v.name)) > title_chars(w)]
+    assert not too_long, too_long
+
+
+def test_spatial_views_draw_paths_up_to_now(blueprint2d, blueprint3d):
+    for blueprint, keys, runs in ((blueprint2d, VARIANTS, RECORD), (blueprint3d, VARIANTS_3D, [RECORD_3D[0]])):
+        spatial = [v for v, _, _ in blueprint_views(blueprint) if v.class_identifier in ("2D", "3D")
+                   and not str(v.origin).startswith("/key")]
+        assert spatial
+        for view in spatial:
+            contents = " ".join(str(c) for c in (view.contents or []))
+            for r in runs:
+                for key in keys:
+                    if f"/world/run{r}/{key}/**" in contents:
+                        assert up_to_now(view, f"/world/run{r}/{key}/track"), (view.name, key)
+                if f"/world/run{r}/truth/**" in contents:
+                    assert up_to_now(view, f"/world/run{r}/truth/path"), view.name
+
+
+def test_track_segments_end_at_their_step(rrd, case):
+    """A track is one segment per step from the previous estimate to this step's: shown up to the
+    cursor, it is the track so far and nothing of the future."""
+    chunks = read_chunks(rrd)
+    for key in VARIANTS:
+        pos = case["estimates"][key].state[0][:, [0, 2]]
+        segments = chunk_rows(chunks, f"/world/run0/{key}/track", "LineStrips2D:strips")
+        assert sorted(segments) == list(range(2, pos.shape[0]))
+        for k, strips in segments.items():
+            assert np.allclose(np.asarray(strips[0]), pos[k - 1:k + 1], atol=1e-3)
+
+
+@pytest.mark.parametrize("which", ["2d", "3d"])
+def test_no_viewer_warning_while_writing(which, case, case3d, tmp_path, capfd):
+    (_write if which == "2d" else _write3d)(case if which == "2d" else case3d, tmp_path / "quiet.rrd")
+    err = capfd.readouterr().err
+    assert "Dropping chunk" not in err and "WARN" not in err, err
