@@ -10,19 +10,23 @@ there (the own-ship position adds no uncertainty).
 
 Layout of the entity tree (``r`` = a recorded Monte Carlo run, ``v`` = a variant key)::
 
-    /world/run{r}/ownship                 static LineStrips2D of the own-ship track + current position
-    /world/run{r}/target                  static LineStrips2D of the true target track + current position
+    /world/run{r}/ownship                 static LineStrips2D of the own-ship track (faint) + current position
+    /world/run{r}/ownship/path            a segment per step, shown up to the time cursor
+    /world/run{r}/target                  static LineStrips2D of the true target track (faint) + current position
+    /world/run{r}/target/path             a segment per step, shown up to the time cursor
     /world/run{r}/measurements/bearing    passive scans: a line from the own-ship along the measured
                                           bearing, BEARING_LINE_SCALE x the true range long; an empty
                                           row at the first active scan after a passive one (clears it)
     /world/run{r}/measurements/fix        active scans: the point own-ship + r (sin beta, cos beta); an
                                           empty row at the first passive scan after an active one
-    /world/run{r}/{v}/track               static: estimated target track (own-ship + relative estimate)
+    /world/run{r}/{v}/track               estimated target track (own-ship + relative estimate): a
+                                          segment per step, shown up to the time cursor
     /world/run{r}/{v}/estimate            current estimated target position
     /world/run{r}/{v}/covariance          2-sigma ellipse (polyline) of the relative position
                                           covariance, centred on the estimate: every
                                           ``ellipse_stride``-th step and at every mode switch only
     /errors/run{r}/{x,y}/{v}              estimate minus truth, east (x) and north (y) [m]
+    /key/variants                         colour key: the variants, own-ship, target, fixes, bearings
     /sensor/mode                          StateChange "active" / "passive" at each switch (+ the first
                                           scan), shown by a StateTimelineView (Rerun 0.41, unstable)
     /sensor/active                        the same as a scalar step series, 1 = active, 0 = passive
@@ -38,8 +42,9 @@ Layout of the entity tree (``r`` = a recorded Monte Carlo run, ``v`` = a variant
 Decimation: a 10 000 s case has 10 001 steps. Everything is logged at every step except the
 covariance ellipses (48-point polylines, 4 variants: ~15 MB per run at every step), which are
 logged every ``ellipse_stride`` (default 10) steps and at each mode switch; an ellipse stays on
-screen until the next one. Tracks are complete static line strips; bearing lines and fixes are at
-every scan (a two-point strip or one point each, small).
+screen until the next one. Tracks are a two-point segment per step (~1.7 MB more than static
+strips for 4 variants x 10 001 steps); bearing lines and fixes are at every scan (a two-point strip
+or one point each, small).
 
 Every time-varying entity has the timelines ``time`` (duration, s) and ``step`` (sequence) and is
 written with one ``send_columns`` call; only static things use ``log``. Rerun is imported lazily.
@@ -55,29 +60,41 @@ import numpy as np
 from filters.base import TrackEstimate
 from pipeline.metrics import axis_unit_of
 from pipeline.data import Detections, Truth
-from pipeline.recording import (log_north_up, atomic_recording, checked_record_runs, covariance_ellipses, FRAMES_PATH, log_config,
-    log_metric_series, metric_time_series, NORTH_UP_FRAME, path_part, PATH_SAFE, target_frame, time_columns,
-    TRUTH_COLOUR, variant_colour, xy_index)
+from pipeline.blueprint_parts import (fit_title, fit_titles, key_view, log_path, no_legend, path_overrides,
+    whole_run as whole_run_axis)
+from pipeline.recording import (log_north_up, atomic_recording, checked_record_runs, covariance_ellipses, FRAMES_PATH,
+    FUTURE_ALPHA, log_config, log_keys, log_metric_series, metric_time_series, NORTH_UP_FRAME, path_part, PATH_SAFE,
+    target_frame, time_columns, track_radius, TRUTH_COLOUR, variant_colour, VARIANT_KEY, xy_index)
 
 if TYPE_CHECKING:  # pragma: no cover
     import polars as pl
 
 ACTIVE, PASSIVE = "active", "passive"
 MODE_LABELS = {ACTIVE: "active (bearing + range)", PASSIVE: "passive (bearing only)"}
+STATE_LABELS = {ACTIVE: "active", PASSIVE: "passive"}      # short: they fit the timeline's bands
 ELLIPSE_STRIDE = 10               # covariance ellipses every 10th step (+ at each mode switch)
 BEARING_LINE_SCALE = 1.2          # a passive bearing line is 1.2 x the true range long
 TIME_SERIES_METRICS = ("position_rmse", "position_rmse_x", "position_rmse_y", "velocity_rmse", "nees", "nis",
                        "position_rmse_over_bound", "position_rmse_over_bound_model")
-# Titles of the consistency views: each variant's run average with its 95 % band (thin, lighter)
+# Titles (tab names) of the metric views, short enough for a tab: each variant's run average with its
+# 95 % band (thin, lighter); the config document says more (NEES: 6 dof, NaN while KF + MGEKF runs
+# its 4-state KF; NIS: 2 dof active, 1 dof passive)
 _VIEW_TITLES = {
-    "nees": "NEES, run average (χ² 6 dof; NaN while KF + MGEKF runs its 4-state KF); thin: 95 % band",
-    "nis": "NIS, run average (χ² 2 dof active, 1 dof passive); thin: 95 % band",
-    "position_rmse_over_bound": "position RMSE / sqrt(clairvoyant PCRLB)",
-    "position_rmse_over_bound_model": "position RMSE / sqrt(PCRLB of the trackers' Singer model)",
+    "nees": "NEES (thin: 95 % band)",
+    "nis": "NIS (thin: 95 % band)",
+    "position_rmse_over_bound": "RMSE / sqrt(PCRLB)",
+    "position_rmse_over_bound_model": "RMSE / sqrt(model PCRLB)",
 }
 _OWNSHIP_COLOUR = (255, 215, 0)
-_BEARING_COLOUR = (150, 150, 150, 150)
 _FIX_COLOUR = (255, 110, 220)
+KEY_EXTRA = (("own-ship", _OWNSHIP_COLOUR), ("target", TRUTH_COLOUR), ("active fix", _FIX_COLOUR),
+             ("passive bearing", (150, 150, 150)))
+
+
+def key_extra(zoom: float) -> list:
+    """The key's entries beside the variants, with the target-centred views' half width."""
+    return list(KEY_EXTRA) + [(f"target-centred: ±{zoom / 1000:.2g} km", (110, 110, 110))]
+_BEARING_COLOUR = (150, 150, 150, 110)
 _MODE_COLOURS = {ACTIVE: 0xFF6EDCFF, PASSIVE: 0x5A6E8CFF}
 
 
@@ -123,16 +140,19 @@ def _check_inputs(truth: Truth, detections: Detections, estimates: Mapping[str, 
 
 
 def _zoom_half(truth_rel: np.ndarray, estimates: Mapping[str, TrackEstimate], xy: list[int], r: int) -> float:
-    """Half width [m] of the target-centred views: 1.5 x the median over variants of each one's 90th
-    percentile of the recorded run's position error (the worst variant would set a scale at which
-    the better ones' errors and ellipses vanish), in [500, 20000] m."""
+    """Half width [m] of the target-centred views: 4 x the median over variants of each one's median
+    position error in the recorded run, in [500, 20000] m. At that scale the active phases' 2-sigma
+    ellipses (tens to a few hundred metres) are rings of several pixels; the passive phases' ones
+    are needles along the bearing (range unobserved: 1-30 km long, tens to hundreds of metres wide)
+    that cross the view. (1.5 x the 90th percentile, the scale before, drew the active ellipses as
+    2-7 px dots.)"""
     q = []
     for est in estimates.values():
         e = np.linalg.norm(est.state[r][:, xy] - truth_rel, axis=-1)
         e = e[np.isfinite(e)]
         if e.size:
-            q.append(np.quantile(e, 0.9))
-    return float(np.clip(1.5 * np.median(q), 500.0, 20000.0)) if q else 3000.0
+            q.append(np.median(e))
+    return float(np.clip(4.0 * np.median(q), 500.0, 20000.0)) if q else 3000.0
 
 
 def write_sonar_recording(path: Path, *, experiment: str, truth: Truth, detections: Detections,
@@ -197,7 +217,7 @@ def write_sonar_recording(path: Path, *, experiment: str, truth: Truth, detectio
         # ---- sensor mode: state timeline, scalar step series, switch log ------------------------
         labels = [ACTIVE if active[k] else PASSIVE for k in switches.tolist()]
         rec.log("/sensor/mode", rr.StateConfiguration(values=[ACTIVE, PASSIVE],
-                                                      labels=[MODE_LABELS[ACTIVE], MODE_LABELS[PASSIVE]],
+                                                      labels=[STATE_LABELS[ACTIVE], STATE_LABELS[PASSIVE]],
                                                       colors=[_MODE_COLOURS[ACTIVE], _MODE_COLOURS[PASSIVE]]),
                 static=True)
         if switches.size:
@@ -212,6 +232,7 @@ def write_sonar_recording(path: Path, *, experiment: str, truth: Truth, detectio
                          columns=rr.Scalars.columns(scalars=active.astype(np.float64)))
 
         log_metric_series(rr, rec, times, metric_series)
+        log_keys(rr, rec, variant_keys, display, colours, extra=key_extra(zoom))
         log_config(rr, rec, experiment, doc, config_text, record_runs, R)
 
 
@@ -222,12 +243,15 @@ def _log_run(rr, rec, times, ui, r: int, time: np.ndarray, own: np.ndarray, targ
     world = f"/world/run{r}"
     K = time.size
 
-    # ---- own-ship and target: whole tracks (static) + current positions; target-centred frame --
+    # ---- own-ship and target: path up to now, the whole track faint, current positions; frame --
+    steps_all = np.arange(K, dtype=np.int64)
     for name, track, colour in (("ownship", own, _OWNSHIP_COLOUR), ("target", target, TRUTH_COLOUR)):
         ok = np.isfinite(track).all(-1)
         steps = np.nonzero(ok)[0]
-        rec.log(f"{world}/{name}", rr.LineStrips2D([track[ok]], colors=colour, radii=ui(0.75), draw_order=16.0,
-                                                   labels=name, show_labels=False), static=True)
+        rec.log(f"{world}/{name}", rr.LineStrips2D([track[ok]], colors=(*colour, FUTURE_ALPHA), radii=ui(0.5),
+                                                   draw_order=12.0, labels=name, show_labels=False), static=True)
+        log_path(rr, rec, times, f"{world}/{name}/path", time, steps_all, track, ok, colour=colour, radius=0.9,
+                 draw_order=16.0)
         rec.log(f"{world}/{name}", rr.Points2D.from_fields(colors=colour, radii=ui(5.0), draw_order=30.0),
                 static=True)
         rec.send_columns(f"{world}/{name}", indexes=times(time[steps], steps),
@@ -253,7 +277,7 @@ def _log_run(rr, rec, times, ui, r: int, time: np.ndarray, own: np.ndarray, targ
     first_passive = switches[~active[switches]]
     for entity, ok, clear, cols, style in (
             ("bearing", bearing_ok, first_active, lambda m: rr.LineStrips2D.columns(strips=lines[m]),
-             rr.LineStrips2D.from_fields(colors=_BEARING_COLOUR, radii=ui(0.75), draw_order=10.0)),
+             rr.LineStrips2D.from_fields(colors=_BEARING_COLOUR, radii=ui(0.5), draw_order=10.0)),
             ("fix", fix_ok, first_passive, lambda m: rr.Points2D.columns(positions=fixes[m]),
              rr.Points2D.from_fields(colors=_FIX_COLOUR, radii=ui(3.5), draw_order=20.0))):
         rec.log(f"{world}/measurements/{entity}", style, static=True)
@@ -264,6 +288,7 @@ def _log_run(rr, rec, times, ui, r: int, time: np.ndarray, own: np.ndarray, targ
                              columns=cols(rows[ok[rows]]).partition(ok[rows].astype(np.int64)))
 
     # ---- per variant: estimated target world position, track, 2-sigma ellipse, errors ---------
+    track_radii = track_radius(list(estimates))
     decimated = np.zeros(K, dtype=bool)
     decimated[::ellipse_stride] = True
     decimated[switches] = True
@@ -276,14 +301,16 @@ def _log_run(rr, rec, times, ui, r: int, time: np.ndarray, own: np.ndarray, targ
         pos = own + rel
         good = np.isfinite(pos).all(-1)
         steps = np.nonzero(good)[0]
-        # the whole track faint and thin, so the current estimate and its ellipse stand out on it
-        rec.log(f"{base}/track", rr.LineStrips2D([pos[good]], colors=(*colour, 110), radii=ui(0.75), draw_order=15.0,
-                                                 labels=display[key], show_labels=False), static=True)
+        # the track up to now, thin and a little transparent, so the estimate and its ellipse stand out
+        log_path(rr, rec, times, f"{base}/track", time, steps_all, pos, good, colour=(*colour, 170),
+                 radius=track_radii[key], draw_order=15.0)
         rec.log(f"{base}/estimate", rr.Points2D.from_fields(colors=colour, radii=ui(5.0), draw_order=40.0),
                 static=True)
         rec.send_columns(f"{base}/estimate", indexes=times(time[steps], steps),
                          columns=rr.Points2D.columns(positions=pos[good]))
-        rec.log(f"{base}/covariance", rr.LineStrips2D.from_fields(colors=colour, radii=ui(1.5), draw_order=35.0),
+        # the ellipse bold and above the bearing lines and tracks: in passive phases it is a needle
+        # along the bearing (the range is unobserved) and would hide under them
+        rec.log(f"{base}/covariance", rr.LineStrips2D.from_fields(colors=colour, radii=ui(2.0), draw_order=45.0),
                 static=True)
         shown = good & decimated & np.isfinite(P).all((-1, -2))
         steps = np.nonzero(shown)[0]
@@ -313,6 +340,8 @@ def _sensor_doc(sensor, active: np.ndarray, time: np.ndarray, ellipse_stride: in
     if noise:
         parts.append("Noise: " + ", ".join(noise) + ".")
     parts.append(f"{int(active.sum())} active and {int((~active).sum())} passive scans of {time.size}.")
+    parts.append("Tabs: NEES is the run average (χ² 6 dof; NaN while KF + MGEKF runs its 4-state KF), NIS the run "
+                 "average (χ² 2 dof active, 1 dof passive), each with its 95 % band as thin lighter lines.")
     parts.append(f"Grey lines: passive bearings ({BEARING_LINE_SCALE:g} x the true range long); pink points: active "
                  f"fixes. Estimated target = own-ship + relative estimate; ellipses: 2σ of the relative position "
                  f"covariance, every {ellipse_stride} steps and at each mode switch.")
@@ -321,15 +350,15 @@ def _sensor_doc(sensor, active: np.ndarray, time: np.ndarray, ellipse_stride: in
 
 def _sonar_blueprint(rrb, record_runs: list[int], variant_keys: list[str], display: Mapping[str, str],
                      metric_series: dict, ownship: np.ndarray, target: np.ndarray, zoom: float):
-    """Top: per variant, a target-centred view over a whole-scene view (own-ship, target, bearings,
-    fixes, that variant). Then the sonar mode as a state timeline, the recorded run's X and Y errors
-    and the Monte Carlo position RMSE; bottom tabs: X / Y RMSE, velocity RMSE, NEES and NIS (each
-    variant with its 95 % chi-square band as thin lighter lines), the mode as a
-    scalar with the switch log, the config."""
+    """Top: per variant a target-centred view (own-ship, target, bearings, fixes, that variant; the
+    zoom says its half width), and one world view (north up) of the scene with every variant; tracks
+    up to the time cursor. Then the colour key, the sonar mode as a
+    state timeline, the recorded run's X and Y errors and the Monte Carlo position RMSE; bottom tabs:
+    X / Y RMSE, velocity RMSE, NEES and NIS (each variant with its 95 % chi-square band as thin
+    lighter lines), the mode as a scalar with the switch log, the config. No legends: the key."""
     r0 = record_runs[0] if record_runs else None
-    whole_run = rrb.TimeAxis(view_range=rrb.TimeRange(start=rrb.TimeRangeBoundary.infinite(),
-                                                      end=rrb.TimeRangeBoundary.infinite()))
-    legend = rrb.PlotLegend(corner="RightTop")
+    whole_run = whole_run_axis(rrb)
+    legend = no_legend(rrb)
     rows, shares = [], []
     if record_runs:
         pts = np.concatenate([ownship[record_runs].reshape(-1, 2), target[record_runs].reshape(-1, 2)])
@@ -339,29 +368,37 @@ def _sonar_blueprint(rrb, record_runs: list[int], variant_keys: list[str], displ
         overview = rrb.VisualBounds2D(x_range=[centre[0] - half[0], centre[0] + half[0]],
                                       y_range=[-centre[1] - half[1], -centre[1] + half[1]])   # north_up: y negated
         follow = rrb.VisualBounds2D(x_range=[-zoom, zoom], y_range=[-zoom, zoom])
+        width = 1600.0 / (len(variant_keys) + 1)
+        runs = f"runs {', '.join(map(str, record_runs))}" if len(record_runs) > 1 else f"run {r0}"
+        near = fit_titles(width, [[f"{display[k]} · run {r0}, target-centred", f"{display[k]} · target-centred",
+                                   display[k]] for k in variant_keys])
         columns = []
-        for key in variant_keys:
-            everything = []
-            for r in record_runs:
-                everything += [f"/world/run{r}/ownship", f"/world/run{r}/target", f"/world/run{r}/measurements/**",
-                               f"/world/run{r}/{key}/**"]
-            runs = f"runs {', '.join(map(str, record_runs))}" if len(record_runs) > 1 else f"run {r0}"
-            columns.append(rrb.Vertical(
-                rrb.Spatial2DView(origin="/world", name=f"{display[key]} · run {r0}, centred on the target",
-                                  contents=[f"/world/run{r0}/ownship", f"/world/run{r0}/target",
-                                            f"/world/run{r0}/measurements/**", f"/world/run{r0}/{key}/**"],
-                                  spatial_information=rrb.SpatialInformation(target_frame=target_frame(r0)),
-                                  visual_bounds=follow),
-                rrb.Spatial2DView(origin="/world", name=f"{display[key]} · {runs}, world (north up)",
-                                  contents=everything,
-                                  spatial_information=rrb.SpatialInformation(target_frame=NORTH_UP_FRAME),
-                                  visual_bounds=overview),
-                row_shares=[1.0, 1.0], name=display[key]))
+        world = f"/world/run{r0}"
+        for key, title in zip(variant_keys, near):
+            columns.append(rrb.Spatial2DView(
+                origin="/world", name=title,
+                contents=[f"{world}/ownship/**", f"{world}/target/**", f"{world}/measurements/**", f"{world}/{key}/**"],
+                overrides=path_overrides(rrb, [f"{world}/ownship/path", f"{world}/target/path", f"{world}/{key}/track"]),
+                spatial_information=rrb.SpatialInformation(target_frame=target_frame(r0)), visual_bounds=follow))
+        # one view of the whole scene with every variant: at that scale their estimates coincide
+        everything, paths = [], []
+        for r in record_runs:
+            world = f"/world/run{r}"
+            everything += [f"{world}/ownship/**", f"{world}/target/**", f"{world}/measurements/**"] + \
+                [f"{world}/{k}/**" for k in variant_keys]
+            paths += [f"{world}/ownship/path", f"{world}/target/path"] + [f"{world}/{k}/track" for k in variant_keys]
+        columns.append(rrb.Spatial2DView(
+            origin="/world", name=fit_title(width, f"{runs}: world (north up), every variant", "world, north up", "world"),
+            contents=everything, overrides=path_overrides(rrb, paths),
+            spatial_information=rrb.SpatialInformation(target_frame=NORTH_UP_FRAME), visual_bounds=overview))
         rows.append(rrb.Horizontal(*columns))
-        shares.append(6.0)
+        shares.append(5.0)
+    rows.append(key_view(rrb, VARIANT_KEY, [display[k] for k in variant_keys] + [label for label, _ in key_extra(zoom)]))
+    shares.append(0.5)
 
-    rows.append(rrb.StateTimelineView(origin="/sensor/mode", name="sonar mode", time_view=whole_run))
-    shares.append(1.1)
+    rows.append(rrb.StateTimelineView(origin="/sensor/mode", name="sonar mode: active (bearing + range) / passive "
+                                      "(bearing only)", time_view=whole_run))
+    shares.append(1.5)
 
     plots = []
     if r0 is not None:
@@ -381,7 +418,7 @@ def _sonar_blueprint(rrb, record_runs: list[int], variant_keys: list[str], displ
         if m in present:
             title = _VIEW_TITLES.get(m, f"{m} [{axis_unit_of(m)}]")
             tabs.append(rrb.TimeSeriesView(origin=f"/metrics/{path_part(m)}", axis_x=whole_run, plot_legend=legend,
-                                           name=f"{title} (all runs)"))
+                                           name=title))
     be = rrb.encodings
     log_columns = rrb.TextLogColumns(
         timeline_columns=[be.TimelineColumn("time"), be.TimelineColumn("step", visible=False)],
