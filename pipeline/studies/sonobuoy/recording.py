@@ -16,20 +16,22 @@ Layout of the entity tree (``r`` = a recorded Monte Carlo run, ``v`` = a variant
 ``i`` = buoy 1..4)::
 
     /world/observer                         static: the observer (fixed)
-    /world/run{r}/truth                     static LineStrips2D of the target track + current position
-    /world/run{r}/buoys/{i}                 static LineStrips2D of buoy i's true track + current position
+    /world/run{r}/truth                     static LineStrips2D of the target track (faint) + current position
+    /world/run{r}/truth/path                a segment per step, shown up to the time cursor
+    /world/run{r}/buoys/{i}                 static LineStrips2D of buoy i's true track (faint) + current position
+    /world/run{r}/buoys/{i}/path            a segment per step, shown up to the time cursor
     /world/run{r}/bearings/target/nominal   per scan: a line from each TRUE buoy position along the
     /world/run{r}/bearings/target/clutter   target bearing it measured, BEARING_LINE_SCALE x the true
                                             buoy-target range long; nominal and clutter returns
                                             (Detections.target == -1) apart; none where missed
     /world/run{r}/bearings/buoys/nominal    per scan: a line from the observer along each buoy bearing,
     /world/run{r}/bearings/buoys/clutter    BEARING_LINE_SCALE x the true observer-buoy range long
-    /world/run{r}/{v}/track                 static estimated target track
+    /world/run{r}/{v}/track                 estimated target track, a segment per step (up to the cursor)
     /world/run{r}/{v}/estimate              current estimated target position
     /world/run{r}/{v}/covariance            2-sigma ellipse (polyline) of the target position block
     /world/run{r}/{v}/buoys                 current estimated buoy positions (4 points)
     /world/run{r}/{v}/buoys/covariance      2-sigma ellipses of each buoy's position block
-    /world/run{r}/{v}/buoys/track           static estimated buoy tracks (faint)
+    /world/run{r}/{v}/buoys/track           estimated buoy tracks (faint), segments (up to the cursor)
     /world/run{r}/{v}/particles             the cloud's target positions, coloured by mode (if kept)
     /world/run{r}/{v}/particles/buoys       the cloud's buoy positions, faint (if kept)
     /variants/{v}/run{r}/mode_probability/{cv,ccw,cw}   the filter's mode probabilities, run r
@@ -40,6 +42,7 @@ Layout of the entity tree (``r`` = a recorded Monte Carlo run, ``v`` = a variant
                                             ess, mode_probability_{cv,ccw,cw}: the latter in mode colours)
     /reference/nees_position/{lower,upper}  95 % band of the mean NEES of R runs: chi2(2R) / R
     /notes                                  TextLog (step 0): what is not drawn and why (no cloud, ...)
+    /key/variants                           colour key: variants, truth, bearings, clutter, modes
     /config                                 markdown: description, sensor, legend, config yaml
     /world/frames/north_up                  the frame the 2-D views look from (y = north up)
 
@@ -57,9 +60,12 @@ import numpy as np
 from filters.base import TrackEstimate
 from filters.particle import MODE_NAMES
 from pipeline.data import Detections, Truth
-from pipeline.recording import (log_north_up, atomic_recording, checked_record_runs, covariance_ellipses, lighter_colour,
-    log_config, log_metric_series, metric_time_series, NORTH_UP_FRAME, path_part, PATH_SAFE, time_columns,
-    TRUTH_COLOUR, variant_colour, xy_index)
+from pipeline.blueprint_parts import (fit_titles, key_view, log_path, no_legend, path_overrides,
+    whole_run as whole_run_axis)
+from pipeline.colours import MODE_COLOURS
+from pipeline.recording import (log_north_up, atomic_recording, checked_record_runs, covariance_ellipses,
+    FUTURE_ALPHA, lighter_colour, log_config, log_keys, log_metric_series, metric_time_series, NORTH_UP_FRAME,
+    path_part, PATH_SAFE, time_columns, track_radius, TRUTH_COLOUR, variant_colour, VARIANT_KEY, xy_index)
 from pipeline.metrics import axis_unit_of
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -71,7 +77,7 @@ CLUTTER = -1                       # Detections.target of a clutter return
 BEARING_LINE_SCALE = 1.3           # a bearing line is 1.3 x the true range long
 MAX_PARTICLES = 200                # at most this many particles of a kept cloud are drawn per scan
 MODE_LABELS = {"cv": "CV", "ccw": "left turn (Ω > 0)", "cw": "right turn (Ω < 0)"}
-MODE_COLOURS = {"cv": (0, 215, 215), "ccw": (225, 85, 225), "cw": (250, 205, 40)}
+# the modes' colours are pipeline.colours.MODE_COLOURS (the report's mode figure uses them too)
 PLOTTED_METRICS = ("position_rmse", "position_median_error", "buoy_position_rmse", "nees_position")
 _NOMINAL_COLOUR = (160, 160, 160, 120)
 _CLUTTER_COLOUR = (235, 70, 70, 150)
@@ -216,7 +222,9 @@ def write_sonobuoy_recording(path: Path, *, experiment: str, truth: Truth, detec
 
         if any(m == "nees_position" for m, _ in metric_series):
             _log_nees_band(rr, rec, times, time, R)
-        log_metric_series(rr, rec, times, metric_series)
+        # the mean mode probabilities bold in every variant's view (its run's thin beside them)
+        log_metric_series(rr, rec, times, metric_series, {f"mode_probability_{m}": 2.5 for m in MODE_NAMES})
+        log_keys(rr, rec, variant_keys, display, colours, extra=KEY_EXTRA)
         if notes:
             zero = np.zeros(len(notes))
             rec.send_columns("/notes", indexes=times(zero, zero.astype(np.int64)),
@@ -250,8 +258,11 @@ def _log_run(rr, rec, times, ui, r: int, time: np.ndarray, true: np.ndarray, tru
     for name, track, colour, label in tracks:
         ok = np.isfinite(track).all(-1)
         steps = np.nonzero(ok)[0]
-        rec.log(f"{world}/{name}", rr.LineStrips2D([track[ok]], colors=colour, radii=ui(0.75), draw_order=16.0),
-                static=True)
+        # the whole track faint (where it goes), the path up to now (time-ranged in the views)
+        rec.log(f"{world}/{name}", rr.LineStrips2D([track[ok]], colors=(*colour, FUTURE_ALPHA), radii=ui(0.5),
+                                                   draw_order=12.0), static=True)
+        log_path(rr, rec, times, f"{world}/{name}/path", time, steps_all, track, ok, colour=colour, radius=0.9,
+                 draw_order=16.0)
         rec.log(f"{world}/{name}", rr.Points2D.from_fields(colors=colour, radii=ui(4.0 if label else 5.0),
                                                            draw_order=30.0, labels=label or "target",
                                                            show_labels=label is not None), static=True)
@@ -287,6 +298,7 @@ def _log_run(rr, rec, times, ui, r: int, time: np.ndarray, true: np.ndarray, tru
                              columns=rr.LineStrips2D.columns(strips=lines[:, slots][m]).partition(m.sum(-1)))
 
     # ---- per variant: target and buoy estimates with 2-sigma ellipses, the particle cloud --------
+    track_radii = track_radius(list(estimates))
     for key, est in estimates.items():
         colour = colours[key]
         base = f"{world}/{key}"
@@ -295,8 +307,8 @@ def _log_run(rr, rec, times, ui, r: int, time: np.ndarray, true: np.ndarray, tru
         pos, P = X[:, xy], C[:, xy][:, :, xy]
         good = np.isfinite(pos).all(-1)
         steps = np.nonzero(good)[0]
-        rec.log(f"{base}/track", rr.LineStrips2D([pos[good]], colors=(*colour, 150), radii=ui(1.0), draw_order=15.0),
-                static=True)
+        log_path(rr, rec, times, f"{base}/track", time, steps_all, pos, good, colour=(*colour, 170),
+                 radius=track_radii[key], draw_order=15.0)
         rec.log(f"{base}/estimate", rr.Points2D.from_fields(colors=colour, radii=ui(5.0), draw_order=40.0),
                 static=True)
         rec.send_columns(f"{base}/estimate", indexes=times(time[steps], steps),
@@ -312,9 +324,8 @@ def _log_run(rr, rec, times, ui, r: int, time: np.ndarray, true: np.ndarray, tru
         bpos = X[:, buoy_xy]                                                              # (K, 4, 2)
         bcov = C[:, buoy_xy[:, :, None], buoy_xy[:, None, :]]                             # (K, 4, 2, 2)
         bok = np.isfinite(bpos).all(-1)                                                   # (K, 4)
-        rec.log(f"{base}/buoys/track", rr.LineStrips2D([bpos[bok[:, i], i] for i in range(BUOYS)],
-                                                       colors=(*colour, 110), radii=ui(0.75), draw_order=14.0),
-                static=True)
+        log_path(rr, rec, times, f"{base}/buoys/track", time, steps_all, bpos, bok, colour=(*colour, 110),
+                 radius=0.75, draw_order=14.0)
         rec.log(f"{base}/buoys", rr.Points2D.from_fields(colors=colour, radii=ui(3.5), draw_order=40.0), static=True)
         rec.send_columns(f"{base}/buoys", indexes=times(time, steps_all),
                          columns=rr.Points2D.columns(positions=bpos[bok]).partition(bok.sum(-1)))
@@ -418,24 +429,32 @@ def _sensor_doc(sensor, notes: list[str]) -> str:
     parts.append(f"Grey lines: nominal bearings, red: clutter returns; target bearings start at the true buoy "
                  f"positions, buoy bearings at the observer, each {BEARING_LINE_SCALE:g} x the true range long. "
                  f"Per filter: estimated target and buoys with 2σ ellipses of their position blocks; particles "
-                 f"(at most {MAX_PARTICLES} per scan) by mode: cyan CV, magenta left (Ω > 0), yellow right (Ω < 0); "
-                 f"faint: the particles' buoys.")
+                 f"(at most {MAX_PARTICLES} per scan) by mode: cyan CV, magenta left (Ω > 0), amber right (Ω < 0); "
+                 f"faint: the particles' buoys. Tracks and true paths are drawn up to the time cursor (the true "
+                 f"tracks' future faint).")
+    parts.append("Tabs: RMSE / sqrt(PCRLB) with the clairvoyant bound and with the bound of the filters' own noise "
+                 "(clutter ignored); RMSE and the two sqrt(PCRLB) in metres.")
     if notes:
         parts.append("Not drawn:\n\n" + "\n".join(f"- {n}" for n in notes))
     return "\n\n".join(parts) + "\n"
+
+
+KEY_EXTRA = (("target (truth)", TRUTH_COLOUR), ("buoys (truth)", _BUOY_COLOUR), ("bearing", _NOMINAL_COLOUR[:3]),
+             ("clutter", _CLUTTER_COLOUR[:3]), ("P(CV)", MODE_COLOURS["cv"]), ("P(left)", MODE_COLOURS["ccw"]),
+             ("P(right)", MODE_COLOURS["cw"]))
 
 
 def _sonobuoy_blueprint(rrb, record_runs: list[int], variant_keys: list[str], display: Mapping[str, str],
                         estimates: Mapping[str, TrackEstimate], metric_series: dict, states: np.ndarray,
                         xy: list[int], buoy_xy: np.ndarray, observer: np.ndarray):
     """Top: per variant, a north-up view of the field (observer, buoys, target, bearings, that
-    variant's estimates and cloud). Then position RMSE, median error, buoy RMSE and NEES with its
-    band; bottom: per particle filter the mode probabilities (run r0 and the Monte Carlo mean), and
-    tabs with the effective sample size, the notes and the config."""
+    variant's estimates and cloud; paths up to the time cursor). Then the colour key (variants,
+    truth, bearings, modes), position RMSE, median error, buoy RMSE and NEES with its band; bottom:
+    per particle filter the mode probabilities (run r0 and the Monte Carlo mean) side by side, and
+    tabs with the effective sample size, the notes and the config. No legends: the key."""
     r0 = record_runs[0] if record_runs else None
-    whole_run = rrb.TimeAxis(view_range=rrb.TimeRange(start=rrb.TimeRangeBoundary.infinite(),
-                                                      end=rrb.TimeRangeBoundary.infinite()))
-    legend = rrb.PlotLegend(corner="RightTop")
+    whole_run = whole_run_axis(rrb)
+    legend = no_legend(rrb)
     rows, shares = [], []
     if r0 is not None:
         pts = np.concatenate([states[..., xy].reshape(-1, 2), states[..., buoy_xy].reshape(-1, 2), observer[None]])
@@ -445,17 +464,23 @@ def _sonobuoy_blueprint(rrb, record_runs: list[int], variant_keys: list[str], di
         bounds = rrb.VisualBounds2D(x_range=[centre[0] - half[0], centre[0] + half[0]],
                                     y_range=[-centre[1] - half[1], -centre[1] + half[1]])   # north_up: y negated
         runs = f"runs {', '.join(map(str, record_runs))}" if len(record_runs) > 1 else f"run {r0}"
+        titles = fit_titles(1600.0 / max(len(variant_keys), 1),
+                            [[f"{display[k]} · {runs} (north up)", display[k]] for k in variant_keys])
         columns = []
-        for key in variant_keys:
-            contents = ["/world/observer"]
+        for key, title in zip(variant_keys, titles):
+            contents, paths = ["/world/observer"], []
             for r in record_runs:
-                contents += [f"/world/run{r}/truth", f"/world/run{r}/buoys/**", f"/world/run{r}/bearings/**",
-                             f"/world/run{r}/{key}/**"]
-            columns.append(rrb.Spatial2DView(origin="/world", name=f"{display[key]} · {runs} (north up)",
-                                             contents=contents, visual_bounds=bounds,
+                world = f"/world/run{r}"
+                contents += [f"{world}/truth/**", f"{world}/buoys/**", f"{world}/bearings/**", f"{world}/{key}/**"]
+                paths += [f"{world}/truth/path"] + [f"{world}/buoys/{i + 1}/path" for i in range(BUOYS)] + \
+                    [f"{world}/{key}/track", f"{world}/{key}/buoys/track"]
+            columns.append(rrb.Spatial2DView(origin="/world", name=title, contents=contents, visual_bounds=bounds,
+                                             overrides=path_overrides(rrb, paths),
                                              spatial_information=rrb.SpatialInformation(target_frame=NORTH_UP_FRAME)))
         rows.append(rrb.Horizontal(*columns))
         shares.append(6.0)
+    rows.append(key_view(rrb, VARIANT_KEY, [display[k] for k in variant_keys] + [label for label, _ in KEY_EXTRA]))
+    shares.append(0.5)
 
     present = {m for m, _ in metric_series}
     plots = []
@@ -465,16 +490,17 @@ def _sonobuoy_blueprint(rrb, record_runs: list[int], variant_keys: list[str], di
         if m == "nees_position":
             plots.append(rrb.TimeSeriesView(origin="/", contents=["/metrics/nees_position/**",
                                                                   "/reference/nees_position/**"],
-                                            name="target position NEES (2 dof, mean of all runs)", axis_x=whole_run,
+                                            name="position NEES (2 dof, mean; grey: 95 % band)", axis_x=whole_run,
                                             plot_legend=legend))
         else:
             plots.append(rrb.TimeSeriesView(origin=f"/metrics/{path_part(m)}", axis_x=whole_run, plot_legend=legend,
-                                            name=f"{m} [{axis_unit_of(m)}] (all runs)"))
+                                            name=f"{m} [{axis_unit_of(m)}]"))
     if plots:
         rows.append(rrb.Horizontal(*plots))
         shares.append(2.4)
 
     bottom = []
+    with_modes = []
     for key in variant_keys:
         est = estimates[key]
         modes = [f"/metrics/mode_probability_{m}/{key}" for m in MODE_NAMES if (f"mode_probability_{m}", key)
@@ -483,34 +509,33 @@ def _sonobuoy_blueprint(rrb, record_runs: list[int], variant_keys: list[str], di
             continue
         if "mode_probabilities" not in est.extras and not modes:
             continue
+        with_modes.append((key, modes))
+    titles = fit_titles(1600.0 / (len(with_modes) + 1), [
+        [f"{display[k]}: P(mode), bold: mean" + (f", thin: run {r0}, white: truth turning" if r0 is not None else ""),
+         f"{display[k]}: P(mode), bold mean" + (f", thin run {r0}" if r0 is not None else ""),
+         f"{display[k]}: P(mode)"] for k, _ in with_modes])
+    for (key, modes), title in zip(with_modes, titles):
         contents = modes + ([f"/variants/{key}/run{r0}/mode_probability/**", f"/truth/run{r0}/turning"]
                             if r0 is not None else [])
-        bottom.append(rrb.TimeSeriesView(
-            origin="/", contents=contents, axis_x=whole_run, axis_y=rrb.ScalarAxis(range=(0.0, 1.0)),
-            plot_legend=rrb.PlotLegend(visible=False),     # 7 lines: a legend would cover them; see the name
-            name=f"{display[key]}: P(mode), cyan CV, magenta left, yellow right; bold: mean"
-                 + (f", thin: run {r0}, white: truth turning" if r0 is not None else "")))
+        bottom.append(rrb.TimeSeriesView(origin="/", contents=contents, axis_x=whole_run,
+                                         axis_y=rrb.ScalarAxis(range=(0.0, 1.0)), plot_legend=legend, name=title))
     tabs = []
     ess = ["/metrics/ess/**"] + ([f"/variants/{k}/run{r0}/ess" for k in variant_keys if "ess" in estimates[k].extras]
                                 if r0 is not None else [])
     if "ess" in present or len(ess) > 1:
         tabs.append(rrb.TimeSeriesView(origin="/", contents=ess, axis_x=whole_run, plot_legend=legend,
-                                       name="effective sample size [particles] (mean bold" +
-                                            (f", run {r0} thin)" if r0 is not None else ")")))
+                                       name="ESS [particles] (mean bold" + (f", run {r0} thin)" if r0 is not None else ")")))
     if "nis" in present:
         tabs.append(rrb.TimeSeriesView(origin="/metrics/nis", axis_x=whole_run, plot_legend=legend,
-                                       name="NIS of the received bearings (mean of the runs; thin: χ² 95 % band)"))
+                                       name="NIS (mean; thin: 95 % band)"))
     if "position_rmse_over_bound" in present:
         tabs.append(rrb.TimeSeriesView(origin="/metrics", contents=["/metrics/position_rmse_over_bound/**",
                                                                     "/metrics/position_rmse_over_bound_model/**"],
-                                       axis_x=whole_run, plot_legend=legend,
-                                       name="position RMSE / sqrt(PCRLB): clairvoyant, and with the filters' noise "
-                                            "(clutter ignored)"))
+                                       axis_x=whole_run, plot_legend=legend, name="RMSE / sqrt(PCRLB)"))
         tabs.append(rrb.TimeSeriesView(origin="/metrics", contents=["/metrics/position_rmse/**",
                                                                     "/metrics/position_bound/**",
                                                                     "/metrics/position_bound_model/**"],
-                                       axis_x=whole_run, plot_legend=legend,
-                                       name="position RMSE and sqrt(PCRLB) [m] (truth's / filters' noise)"))
+                                       axis_x=whole_run, plot_legend=legend, name="RMSE and sqrt(PCRLB) [m]"))
     be = rrb.encodings
     tabs.append(rrb.TextLogView(origin="/notes", name="Notes", columns=rrb.TextLogColumns(
         timeline_columns=[be.TimelineColumn("step", visible=False), be.TimelineColumn("time", visible=False)],
