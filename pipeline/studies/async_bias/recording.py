@@ -6,14 +6,16 @@ Layout of the entity tree (``r`` = a recorded Monte Carlo run, ``v`` = a variant
 number 1..S as in the metric names ``..._s<n>``, ``m`` = target number 1..T)::
 
     /world/radars                                 static markers at the radar positions, labelled
-    /world/run{r}/truth                           static LineStrips2D of every target (labelled 1..T)
-                                                  + current true positions (Points2D per truth step)
+    /world/run{r}/truth                           static LineStrips2D of every target (faint, labelled
+                                                  1..T) + current true positions (Points2D per truth step)
+    /world/run{r}/truth/path                      a segment per target and step, shown up to the cursor
     /world/run{r}/measurements/radar{n}           radar n's latest report of every target, converted
                                                   to x, y (radar position + range [cos, sin](azimuth));
                                                   biased, so offset from the truth
     /world/run{r}/measurements/all                every report of every radar, static and faint
-    /world/run{r}/{v}/radar{n}/biased/track       static: radar n's biased local track of each kept
-                                                  target (the variant's ``targets``)
+    /world/run{r}/{v}/radar{n}/biased/track       radar n's biased local track of each kept target (the
+                                                  variant's ``targets``): a segment per report, shown
+                                                  up to the time cursor
     /world/run{r}/{v}/radar{n}/biased/estimate    at radar n's reports: the current track estimates
     /world/run{r}/{v}/radar{n}/biased/covariance  at radar n's reports: 2-sigma position ellipses (polylines)
     /world/run{r}/{v}/radar{n}/compensated/...    the same for X^b - G beta_hat (variants that estimate
@@ -27,6 +29,7 @@ number 1..S as in the metric names ``..._s<n>``, ``m`` = target number 1..T)::
                                                   and the runs) and its 95 % band (the metrics'
                                                   nis_s{n}_lower / _upper, thin and lighter)
     /config                                       markdown: description, radars, true biases, config yaml
+    /key/variants                                 colour key: variants, truth, radars (colours no variant has)
     /world/frames/north_up, /world/frames/target{m}_run{r}   frames the 2-D views look from (y up;
                                                   the latter centred on target m's true position)
 
@@ -51,9 +54,11 @@ import numpy as np
 
 from filters.bias import BIAS_NAMES, BiasRegistrationResult
 from pipeline.data import Detections, Truth
-from pipeline.recording import (log_north_up, atomic_recording, checked_record_runs, covariance_ellipses, FRAMES_PATH, lighter_colour,
-    log_config, log_metric_series, metric_time_series, NORTH_UP_FRAME, path_part, PATH_SAFE, time_columns,
-    TRUTH_COLOUR, variant_colour, xy_index)
+from pipeline.blueprint_parts import (fit_titles, key_view, log_path, no_legend, path_overrides,
+    whole_run as whole_run_axis)
+from pipeline.recording import (log_north_up, atomic_recording, checked_record_runs, covariance_ellipses, FRAMES_PATH,
+    FUTURE_ALPHA, lighter_colour, log_config, log_keys, log_metric_series, metric_time_series, NORTH_UP_FRAME,
+    path_part, PATH_SAFE, time_columns, TRUTH_COLOUR, variant_colour, VARIANT_KEY, xy_index)
 
 if TYPE_CHECKING:  # pragma: no cover
     import polars as pl
@@ -65,12 +70,14 @@ BIAS_LABELS = {"range_offset": "range offset b_r", "azimuth_offset": "azimuth of
                "range_scale": "range scale ε_r", "azimuth_scale": "azimuth scale ε_θ"}
 BIAS_SYMBOLS = {"range_offset": "b_r", "azimuth_offset": "b_θ", "range_scale": "ε_r", "azimuth_scale": "ε_θ"}
 KINDS = ("biased", "compensated")
-_RADAR_COLOURS = [(255, 150, 50), (70, 190, 255), (120, 220, 90), (230, 90, 200)]
+# radars in colours no variant has (pipeline.colours: blue, orange, green, red, ... are the variants')
+_RADAR_COLOURS = [(245, 215, 70), (235, 100, 235), (120, 235, 215), (255, 160, 130)]
 _TIME_TOLERANCE = 1e-6                   # [s] a report time matches a truth time this close
 _BIAS_RMSE = re.compile(r"^bias_rmse_(?P<component>.+)_s(?P<radar>\d+)$")
 _TRACK_METRIC = re.compile(r"^(?P<quantity>position_rmse|velocity_rmse|track_nees)_s(?P<radar>\d+)_t(?P<target>\d+)"
                            r"(?P<compensated>_compensated)?$")
 _NEES = re.compile(r"^bias_nees(_s(?P<radar>\d+))?$")
+TAB_WIDTH = 1600.0 * 2.0 / 5.0           # the bottom right tabs' width on the 1600 px window [px]
 
 
 def radar_colour(n: int) -> tuple[int, int, int]:
@@ -275,6 +282,7 @@ def write_bias_recording(path: Path, *, experiment: str, truth: Truth, detection
             _log_run(rr, rec, times, ui, r, truth, truth_xy, detections, det_steps, estimates, est_steps,
                      positions, names, colours, display, true_bias, flip)
         log_metric_series(rr, rec, times, metric_series)
+        log_keys(rr, rec, variant_keys, display, colours, extra=key_extra(names))
         for metric, (steps, t, mean, lo, hi) in bands.items():
             base = f"/metrics/{path_part(metric)}/chi2"
             for part, values, label, width in (("mean", mean, "χ² mean (dof)", 1.5),
@@ -298,12 +306,15 @@ def _log_run(rr, rec, times, ui, r: int, truth: Truth, truth_xy: list[int], dete
     xy = np.asarray(truth.state[r], dtype=np.float64)[..., truth_xy]                # (Kt, T, 2)
     T = xy.shape[1]
     strips = [xy[:, t][np.isfinite(xy[:, t]).all(-1)] for t in range(T)]
-    rec.log(f"{world}/truth", rr.LineStrips2D(strips, colors=TRUTH_COLOUR, radii=ui(0.75),
+    # the whole trajectories faint (labelled), the paths up to now (time-ranged in the views)
+    rec.log(f"{world}/truth", rr.LineStrips2D(strips, colors=(*TRUTH_COLOUR, FUTURE_ALPHA), radii=ui(0.5),
                                               labels=[str(t + 1) for t in range(T)], show_labels=True,
-                                              draw_order=16.0), static=True)
+                                              draw_order=12.0), static=True)
     rec.log(f"{world}/truth", rr.Points2D.from_fields(colors=TRUTH_COLOUR, radii=ui(3.0), draw_order=30.0),
             static=True)
     ok = np.isfinite(xy).all(-1)                                                   # (Kt, T)
+    log_path(rr, rec, times, f"{world}/truth/path", grid, np.arange(grid.size), xy, ok, colour=TRUTH_COLOUR,
+             radius=0.75, draw_order=16.0)
     steps = np.nonzero(ok.any(-1))[0]
     rec.send_columns(f"{world}/truth", indexes=times(grid[steps], steps),
                      columns=rr.Points2D.columns(positions=xy[ok]).partition(ok[steps].sum(-1)))
@@ -354,12 +365,10 @@ def _log_run(rr, rec, times, ui, r: int, truth: Truth, truth_xy: list[int], dete
                 good = np.isfinite(pos).all(-1) & np.isfinite(P).all((-1, -2))       # (kn, Tsel)
                 colour = radar_colour(n) if kind == "compensated" else _dim(radar_colour(n))
                 base = f"{world}/{key}/radar{n + 1}/{kind}"
-                rec.log(f"{base}/track", rr.LineStrips2D(
-                    [pos[:, i][good[:, i]] for i in range(targets.size)], colors=colour,
-                    radii=ui(1.5 if kind == "compensated" else 1.0), show_labels=False,
-                    labels=[f"{display[key]} · target {t + 1} · radar {n + 1} ({names[n]}) · {kind}"
-                            for t in targets],
-                    draw_order=35.0 if kind == "compensated" else 33.0), static=True)
+                # the tracks up to now: a segment per report of this radar and kept target
+                log_path(rr, rec, times, f"{base}/track", grid[steps_of[rows]], steps_of[rows], pos, good,
+                         colour=colour, radius=1.5 if kind == "compensated" else 1.0,
+                         draw_order=35.0 if kind == "compensated" else 33.0)
                 rec.log(f"{base}/estimate", rr.Points2D.from_fields(colors=colour, radii=ui(3.5),
                                                                     draw_order=40.0), static=True)
                 rec.log(f"{base}/covariance", rr.LineStrips2D.from_fields(colors=colour, radii=ui(1.0),
@@ -401,6 +410,11 @@ def _log_run(rr, rec, times, ui, r: int, truth: Truth, truth_xy: list[int], dete
                                      columns=rr.Scalars.columns(scalars=values * factor))
 
 
+def key_extra(names: Sequence[str]) -> list:
+    """Key entries beside the variants: the truth and each radar (its reports and local tracks)."""
+    return [("truth", TRUTH_COLOUR)] + [(f"radar {n + 1} ({name})", radar_colour(n)) for n, name in enumerate(names)]
+
+
 def target_frame(target: int, run: int) -> str:
     """Named frame centred on target ``target`` (0-based) of run ``run``, y (north) up."""
     return f"target{target + 1}_run{run}"
@@ -418,39 +432,52 @@ def _bias_blueprint(rrb, truth: Truth, truth_xy: list[int], positions: np.ndarra
     r0 = record_runs[0] if record_runs else None
     variant_keys = list(estimates)
     S = positions.shape[0]
-    whole_run = rrb.TimeAxis(view_range=rrb.TimeRange(start=rrb.TimeRangeBoundary.infinite(),
-                                                      end=rrb.TimeRangeBoundary.infinite()))
-    legend = rrb.PlotLegend(corner="RightTop")
+    whole_run = whole_run_axis(rrb)
+    legend = no_legend(rrb)            # the colour key names the variants (and the radars, the truth)
     rows, shares = [], []
 
     if r0 is not None:
         world = f"/world/run{r0}"
+
+        def tracks(keys):               # the track entities of these variants (time-ranged: up to now)
+            return [f"{world}/{k}/radar{n + 1}/{kind}/track" for k in keys for n in range(S)
+                    for kind in (KINDS if _has_bias(estimates[k]) else KINDS[:1])]
+
         xy = np.concatenate([np.asarray(truth.state[r0], dtype=np.float64)[..., truth_xy].reshape(-1, 2), positions])
         xy = xy[np.isfinite(xy).all(-1)]
         lo, hi = xy.min(0), xy.max(0)
         centre, half = (lo + hi) / 2, np.maximum((hi - lo) / 2, 100.0) * 1.08
         overview = rrb.Spatial2DView(
             origin="/world", name=f"run {r0}: radars, {truth.state.shape[2]} targets, measurements, tracks",
-            contents=["/world/radars", f"{world}/truth", f"{world}/measurements/**"]
+            contents=["/world/radars", f"{world}/truth/**", f"{world}/measurements/**"]
             + [f"{world}/{k}/**" for k in variant_keys],
+            overrides=path_overrides(rrb, [f"{world}/truth/path"] + tracks(variant_keys)),
             spatial_information=rrb.SpatialInformation(target_frame=NORTH_UP_FRAME),
             visual_bounds=rrb.VisualBounds2D(x_range=[centre[0] - half[0], centre[0] + half[0]],
                                              y_range=[-centre[1] - half[1], -centre[1] + half[1]]))
         columns = [overview]
-        for key in bias_keys or variant_keys:
+        zoomed = bias_keys or variant_keys
+        for key in zoomed:
             est = estimates[key]
             views = []
-            for t in np.asarray(est.targets, dtype=np.int64).tolist():
+            targets = np.asarray(est.targets, dtype=np.int64).tolist()
+            titles = fit_titles(1600.0 * 1.0 / (2.0 + len(zoomed)), [
+                [f"{display[key]} · target {t + 1}: biased (dim) vs compensated",
+                 f"{display[key]} · target {t + 1}: biased dim", f"{display[key]} · target {t + 1}"] for t in targets])
+            for t, title in zip(targets, titles):
                 h = _zoom_half(truth, truth_xy, estimates, r0, t)
                 views.append(rrb.Spatial2DView(
-                    origin="/world", name=f"{display[key]} · target {t + 1}: biased (dim) vs compensated",
-                    contents=[f"{world}/truth", f"{world}/measurements/**", f"{world}/{key}/**"],
+                    origin="/world", name=title,
+                    contents=[f"{world}/truth/**", f"{world}/measurements/**", f"{world}/{key}/**"],
+                    overrides=path_overrides(rrb, [f"{world}/truth/path"] + tracks([key])),
                     spatial_information=rrb.SpatialInformation(target_frame=target_frame(t, r0)),
                     visual_bounds=rrb.VisualBounds2D(x_range=[-h, h], y_range=[-h, h])))
             if views:
                 columns.append(rrb.Vertical(*views, name=display[key]))
         rows.append(rrb.Horizontal(*columns, column_shares=[2.0] + [1.0] * (len(columns) - 1)))
         shares.append(5.0)
+    rows.append(key_view(rrb, VARIANT_KEY, [display[k] for k in variant_keys] + [label for label, _ in key_extra(names)]))
+    shares.append(0.5)
 
     bottom, bottom_shares = [], []
     if r0 is not None and bias_keys:
@@ -463,11 +490,14 @@ def _bias_blueprint(rrb, truth: Truth, truth_xy: list[int], positions: np.ndarra
                 axes[component] = rrb.ScalarAxis(range=limits) if limits is not None else None
             # one row per variant, one column per component: the variants' views of a component are
             # aligned (same time axis, same y range) one above the other
+            titles = fit_titles(1600.0 * 0.6 / len(BIAS_NAMES), [
+                [f"{display[key]} · {BIAS_SYMBOLS[c]} [{BIAS_DISPLAY[c][0]}] ±2σ",
+                 f"{display[key]} {BIAS_SYMBOLS[c]} [{BIAS_DISPLAY[c][0]}]", f"{BIAS_SYMBOLS[c]} [{BIAS_DISPLAY[c][0]}]"]
+                for key in bias_keys for c in BIAS_NAMES])
             views = [rrb.TimeSeriesView(
                 origin=f"/bias/{key}/run{r0}/radar{n + 1}/{component}", axis_x=whole_run, axis_y=axes[component],
-                plot_legend=rrb.PlotLegend(visible=False),
-                name=f"{display[key]} · {BIAS_SYMBOLS[component]} [{BIAS_DISPLAY[component][0]}] ±2σ")
-                for key in bias_keys for component in BIAS_NAMES]
+                plot_legend=legend, name=titles[i * len(BIAS_NAMES) + c])
+                for i, key in enumerate(bias_keys) for c, component in enumerate(BIAS_NAMES)]
             tabs.append(rrb.Grid(*views, grid_columns=len(BIAS_NAMES),
                                  name=f"bias estimates · radar {n + 1} ({names[n]}) · run {r0}"))
         bottom.append(rrb.Tabs(*tabs, active_tab=0))
@@ -476,30 +506,37 @@ def _bias_blueprint(rrb, truth: Truth, truth_xy: list[int], positions: np.ndarra
     present = {m for m, _ in metric_series}
     tabs = []
     rmse = []
-    for c, component in enumerate(BIAS_NAMES):
-        for n in range(S):
-            metric = f"bias_rmse_{component}_s{n + 1}"
-            if metric in present:
-                rmse.append(rrb.TimeSeriesView(
-                    origin=f"/metrics/{metric}", axis_x=whole_run, plot_legend=legend,
-                    name=f"RMSE {BIAS_LABELS[component]} · radar {n + 1} [{BIAS_DISPLAY[component][0]}]"))
+    chosen = [(component, n) for component in BIAS_NAMES for n in range(S)
+              if f"bias_rmse_{component}_s{n + 1}" in present]
+    titles = fit_titles(1600.0 * 0.4 / max(S, 1), [
+        [f"RMSE {BIAS_LABELS[c]} · radar {n + 1} [{BIAS_DISPLAY[c][0]}]",
+         f"RMSE {BIAS_SYMBOLS[c]} · radar {n + 1} [{BIAS_DISPLAY[c][0]}]", f"{BIAS_SYMBOLS[c]} s{n + 1}"]
+        for c, n in chosen])
+    for (component, n), title in zip(chosen, titles):
+        rmse.append(rrb.TimeSeriesView(origin=f"/metrics/bias_rmse_{component}_s{n + 1}", axis_x=whole_run,
+                                       plot_legend=legend, name=title))
     if rmse:
         tabs.append(rrb.Grid(*rmse, grid_columns=S, name="bias RMSE (all runs)"))
-    nees = [rrb.TimeSeriesView(origin=f"/metrics/{m}", axis_x=whole_run, plot_legend=legend,
-                               name=f"{m} (χ² {_nees_dof(m, S)} dof; band: mean of the runs)")
-            for m in ["bias_nees"] + [f"bias_nees_s{n + 1}" for n in range(S)] if m in present]
+    nees_metrics = [m for m in ["bias_nees"] + [f"bias_nees_s{n + 1}" for n in range(S)] if m in present]
+    grid = int(np.ceil(np.sqrt(len(nees_metrics)))) if nees_metrics else 1
+    titles = fit_titles(TAB_WIDTH / grid, [[f"{m} (χ² {_nees_dof(m, S)} dof; band: mean of the runs)",
+                                            f"{m} (χ² {_nees_dof(m, S)} dof, 95 % band)", m] for m in nees_metrics])
+    nees = [rrb.TimeSeriesView(origin=f"/metrics/{m}", axis_x=whole_run, plot_legend=legend, name=title)
+            for m, title in zip(nees_metrics, titles)]
     if nees:
         tabs.append(rrb.Grid(*nees, name="bias NEES"))
     # the local tracks are the same in every variant, so the variants' NIS lines coincide
-    nis = [rrb.TimeSeriesView(origin=f"/metrics/nis_s{n + 1}", axis_x=whole_run, plot_legend=legend,
-                              name=f"nis_s{n + 1}: radar {n + 1} ({names[n]}) local tracks (χ² 2 dof per target, "
-                                   f"mean of targets and runs; band 95 %)")
-           for n in range(S) if f"nis_s{n + 1}" in present]
+    radars = [n for n in range(S) if f"nis_s{n + 1}" in present]
+    grid = int(np.ceil(np.sqrt(len(radars)))) if radars else 1
+    titles = fit_titles(TAB_WIDTH / grid, [[f"nis_s{n + 1}: radar {n + 1} local tracks (mean; thin: 95 % band)",
+                                            f"nis_s{n + 1}: radar {n + 1} local tracks", f"nis_s{n + 1}"] for n in radars])
+    nis = [rrb.TimeSeriesView(origin=f"/metrics/nis_s{n + 1}", axis_x=whole_run, plot_legend=legend, name=title)
+           for n, title in zip(radars, titles)]
     if nis:
         tabs.append(rrb.Grid(*nis, name="local-track NIS"))
     track = _track_metric_views(rrb, metric_series, variant_keys, bias_keys, whole_run)
     if track:
-        tabs.append(rrb.Grid(*track, grid_columns=4, name="tracks: biased (light) vs compensated"))
+        tabs.append(rrb.Grid(*track, grid_columns=3, name="tracks: biased (light) vs compensated"))
     tabs.append(rrb.TextDocumentView(origin="/config", name="Config"))
     bottom.append(rrb.Tabs(*tabs, active_tab=0))
     bottom_shares.append(2.0)
@@ -528,8 +565,7 @@ def _track_metric_views(rrb, metric_series: dict, variant_keys: list[str], bias_
             groups.setdefault((m["quantity"], int(m["radar"]), int(m["target"])), []).append(
                 f"/metrics/{path_part(metric)}/{key}")
     order = {"position_rmse": 0, "velocity_rmse": 1, "track_nees": 2}
-    short = {"position_rmse": "position RMSE [m]", "velocity_rmse": "velocity RMSE [m/s]",
-             "track_nees": "NEES (4 dof)"}
+    short = {"position_rmse": "pos [m]", "velocity_rmse": "vel [m/s]", "track_nees": "NEES"}   # 3 a row: short
     views = []
     for (quantity, n, t), contents in sorted(groups.items(), key=lambda g: (order[g[0][0]], g[0][1], g[0][2])):
         if quantity == "track_nees":
