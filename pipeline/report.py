@@ -464,7 +464,22 @@ def evaluate_finding(tables: RunTables, spec: FindingSpec) -> str:
     return "no value: an input of the query is NULL" if measured is None else str(measured)
 
 
-def draw_figure(df: pl.DataFrame, spec: FigureSpec, path: Path) -> None:
+def run_variants(tables: RunTables) -> list[tuple[str, str]]:
+    """(variant key, display name) of the run's variants in the experiment's order (summary.parquet
+    keeps it): the order that gives each its colour in the recording (pipeline.colours)."""
+    frame = tables.summary if tables.summary.height else tables.metrics
+    if frame.height == 0 or not {"variant_key", "variant"} <= set(frame.columns):
+        return []
+    pairs = frame.select("variant_key", "variant").filter(pl.col("variant_key").is_not_null()).unique(
+        subset="variant_key", maintain_order=True)
+    return [(str(k), str(v)) for k, v in pairs.iter_rows()]
+
+
+def draw_figure(df: pl.DataFrame, spec: FigureSpec, path: Path, variants: Sequence[tuple[str, str]] = ()) -> None:
+    """One line (or bar group) per ``spec.series`` value, each in its style from pipeline.colours:
+    a series naming a variant of ``variants`` ((key, display name), the run's order) in that
+    variant's colour, width and dash, as in the recording; a mode in the mode's colour; the rest grey.
+    Lines are drawn widest first, so where curves coincide each stays visible."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -474,23 +489,29 @@ def draw_figure(df: pl.DataFrame, spec: FigureSpec, path: Path) -> None:
     absent = [c for c in needed if c not in df.columns]
     if absent:
         raise ReportError(f"report.figures.{spec.name}: the query's columns {df.columns} lack {absent}")
+    from pipeline.colours import figure_styles, mpl, variant_styles
+
     fig, ax = plt.subplots(figsize=(8.0, 4.2), dpi=110)
     groups = [(None, df)] if spec.series is None else [
         (key[0], part) for key, part in df.group_by(spec.series, maintain_order=True)]
+    styles = figure_styles([str(label) for label, _ in groups if label is not None], variants)
+    single = next(iter(variant_styles(["_"]).values()))          # a figure without series: the first style
     width = 0.8 / max(len(groups), 1)
     for i, (label, part) in enumerate(groups):
         x, y = part[spec.x].to_numpy(), part[spec.y].to_numpy().astype(float)
         name = None if label is None else str(label)
+        style = single if name is None else styles[name]
         if spec.kind == "bar":
             positions = range(len(x))
-            ax.bar([p + i * width for p in positions], y, width=width, label=name)
+            ax.bar([p + i * width for p in positions], y, width=width, label=name, color=mpl(style.colour),
+                   edgecolor="black", linewidth=0.5, hatch=None if style.variant else "//" * (i % 2))
             ax.set_xticks([p + 0.4 - width / 2 for p in positions], [str(v) for v in x], rotation=30, ha="right")
             continue
         plot = ax.step if spec.kind == "step" else ax.plot
-        (line,) = plot(x, y, label=name, linewidth=1.6, **({"where": "mid"} if spec.kind == "step" else {}))
+        plot(x, y, label=name, **style.plot_kwargs(len(x)), **({"where": "mid"} if spec.kind == "step" else {}))
         if spec.lower and spec.upper:
             ax.fill_between(x, part[spec.lower].to_numpy().astype(float), part[spec.upper].to_numpy().astype(float),
-                            color=line.get_color(), alpha=0.12, linewidth=0)
+                            color=mpl(style.colour), alpha=0.12, linewidth=0, zorder=1)
     for ref, marker in zip(spec.reference, "osD^vPX*" * 4):      # one hollow marker shape per reference
         ax.plot(list(ref["x"]), list(ref["y"]), linestyle="none", marker=marker, markersize=6, markerfacecolor="none",
                 color="black", label=str(ref["label"]))
@@ -711,7 +732,7 @@ def _figure_section(tables: RunTables, fig: FigureSpec, out_dir: Path, report: R
         df = tables.query(fig.query)
         if df.height == 0:
             raise ReportError("the query returned no rows")
-        draw_figure(df, fig, path)
+        draw_figure(df, fig, path, run_variants(tables))
     except Exception as exc:  # noqa: BLE001 - one broken figure must not lose the report
         return [f"{heading} {fig.title}", "", f"**figure not drawn**: {type(exc).__name__}: {exc}", "",
                 _sql_block(fig.name, fig.query), ""]

@@ -389,7 +389,8 @@ def is_numeric(dtype: pl.DataType) -> bool:
 
 def draw_metric_figure(data: pl.DataFrame, *, x: str, series: str, window: str | None, unit: str,
                        path: Path, colours: dict[str, tuple[int, int, int]], left_out: Sequence[str] = ()) -> None:
-    """One panel per ``panel`` value, one line per variant (its recording colour), error bars from
+    """One panel per ``panel`` value, one line per variant (its recording colour, and the dash, marker
+    and width of pipeline.colours.variant_styles, so coinciding lines stay apart), error bars from
     ci_low / ci_high where present; numeric ``x`` on a numeric axis, anything else as categories.
     ``left_out``: the labels of jobs without a result (failed, unfinished), named under the title."""
     import matplotlib
@@ -407,6 +408,8 @@ def draw_metric_figure(data: pl.DataFrame, *, x: str, series: str, window: str |
     ticks = sorted(data["x"].drop_nulls().unique().to_list()) if numeric else []
     span = (ticks[-1] - ticks[0]) or 1.0 if ticks else 1.0
     variants = data["variant_key"].unique(maintain_order=True).to_list()
+    from pipeline.colours import variant_styles
+    styles = variant_styles(list(colours) + [k for k in variants if k not in colours])
     with_interval = data.filter(pl.col("ci_low").is_not_null() & pl.col("ci_high").is_not_null()).height > 0
     for ax, name in zip(axes.flat, panels):
         part = data.filter(pl.col("panel") == name)
@@ -422,8 +425,9 @@ def draw_metric_figure(data: pl.DataFrame, *, x: str, series: str, window: str |
                 offset = (i - (len(variants) - 1) / 2) * 0.08
                 xs = [categories.index(format_value(v)) + offset for v in rows["x"].to_list()]
             ys = rows["value"].to_list()
-            ax.plot(xs, ys, marker="o", markersize=4, linewidth=1.6, color=colour,
-                    linestyle="-" if numeric else "none", label=str(rows["variant"][0]))
+            style = styles[key]
+            ax.plot(xs, ys, marker=style.marker, markersize=5, linewidth=style.width, color=colour,
+                    linestyle=style.dash if numeric else "none", zorder=style.zorder, label=str(rows["variant"][0]))
             bars = [(xv, y, lo, hi) for xv, y, lo, hi in zip(xs, ys, rows["ci_low"].to_list(), rows["ci_high"].to_list())
                     if lo is not None and hi is not None]
             if bars:
@@ -474,7 +478,8 @@ def draw_figures(sweep: Sweep, metric: str, window: str | None = None, x: str | 
                  out: Path | None = None) -> list[Path]:
     """One PNG per swept key (or only ``x``) under ``out`` (default ``<sweep>/figures``):
     ``<series>_<window>_vs_<key>.png``."""
-    from pipeline.recording import path_part, variant_colour
+    from pipeline.colours import variant_colour
+    from pipeline.recording import path_part
 
     if not sweep.swept:
         raise SweepError(f"the jobs of {sweep.folder} share all their overrides, so nothing was swept to plot "

@@ -9,7 +9,7 @@ path part; ``v`` = a variant key)::
 
 The stored blueprint has one time-series view per metric (``DEFAULT_SERIES`` that the jobs have,
 or all of them when they have few) with every job's and variant's line, and the jobs table beside.
-A variant keeps its colour from the run recordings (pipeline.recording.variant_colour, in the
+A variant keeps its colour and line width from the run recordings (pipeline.colours, in the
 sweep's variant order); its jobs are shades of it, the first job the full colour and later ones
 lighter, so a line's hue says the variant and its shade the job. The χ² bands (``*_lower`` /
 ``*_upper``) stay in the run recordings: with jobs of different run counts one view would hold
@@ -82,12 +82,13 @@ def sweep_lines(sweep: Sweep, metrics: dict[str, pl.DataFrame], series: list[str
     """One line per (series, job, variant) with finite values: entity path, display name, colour,
     steps, time, values; in view order, then job order, then variant order."""
     import rerun as rr
-    from pipeline.recording import lighter_colour, variant_colour
+    from pipeline.colours import lighter as lighter_colour, rerun_widths, variant_colour
 
     order = variant_order(sweep.summary)       # as the sweep's figures colour them
     for frame in metrics.values():
         order += [k for k in frame["variant_key"].unique(maintain_order=True).to_list() if k not in order]
     colours = {key: variant_colour(i) for i, key in enumerate(order)}
+    widths = rerun_widths(order)              # as in the run recordings: coinciding lines stay visible
     labels = [j.label for j in sweep.jobs if j.label in metrics]
     lines = []
     for name in series:
@@ -104,7 +105,7 @@ def sweep_lines(sweep: Sweep, metrics: dict[str, pl.DataFrame], series: list[str
                 entity = "/".join(["/metrics", *map(rr.escape_entity_path_part, (name, label, key))])
                 lines.append({"entity": entity,
                               "series": name, "job": label, "variant_key": key, "name": f"{label} · {variant}",
-                              "colour": lighter_colour(colours[key], shade),
+                              "colour": lighter_colour(colours[key], shade), "width": widths[key],
                               "steps": rows["step"].to_numpy().astype(np.int64)[keep],
                               "time": rows["time"].cast(pl.Float64).to_numpy()[keep], "values": values[keep]})
     return lines
@@ -164,7 +165,8 @@ def write_sweep_recording(sweep: Sweep, path: Path | None = None, series: list[s
                           skip_hint="the sweep's tables were written before it") as rec:
         times = time_columns(rr)
         for line in lines:
-            rec.log(line["entity"], rr.SeriesLines(names=line["name"], colors=line["colour"], widths=2.0), static=True)
+            rec.log(line["entity"], rr.SeriesLines(names=line["name"], colors=line["colour"], widths=line["width"]),
+                    static=True)
             rec.send_columns(line["entity"], indexes=times(line["time"], line["steps"]),
                              columns=rr.Scalars.columns(scalars=line["values"]))
         rec.log("/sweep", rr.TextDocument(jobs_markdown(sweep), media_type=rr.MediaType.MARKDOWN), static=True)
