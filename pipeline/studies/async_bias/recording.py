@@ -446,7 +446,7 @@ def _bias_blueprint(rrb, truth: Truth, truth_xy: list[int], positions: np.ndarra
         xy = np.concatenate([np.asarray(truth.state[r0], dtype=np.float64)[..., truth_xy].reshape(-1, 2), positions])
         xy = xy[np.isfinite(xy).all(-1)]
         lo, hi = xy.min(0), xy.max(0)
-        centre, half = (lo + hi) / 2, np.maximum((hi - lo) / 2, 100.0) * 1.08
+        centre, half = (lo + hi) / 2, np.maximum((hi - lo) / 2, 100.0) * 1.15   # room for the radars' labels
         overview = rrb.Spatial2DView(
             origin="/world", name=f"run {r0}: radars, {truth.state.shape[2]} targets, measurements, tracks",
             contents=["/world/radars", f"{world}/truth/**", f"{world}/measurements/**"]
@@ -457,14 +457,16 @@ def _bias_blueprint(rrb, truth: Truth, truth_xy: list[int], positions: np.ndarra
                                              y_range=[-centre[1] - half[1], -centre[1] + half[1]]))
         columns = [overview]
         zoomed = bias_keys or variant_keys
+        options = {(key, t): [f"{display[key]} · target {t + 1}: biased (dim) vs compensated",
+                              f"{display[key]} · target {t + 1}: biased vs compensated", f"{display[key]} · target {t + 1}"]
+                   for key in zoomed for t in np.asarray(estimates[key].targets, dtype=np.int64).tolist()}
+        titles = dict(zip(options, fit_titles(1600.0 / (2.0 + len(zoomed)), list(options.values()))))
         for key in zoomed:
             est = estimates[key]
             views = []
             targets = np.asarray(est.targets, dtype=np.int64).tolist()
-            titles = fit_titles(1600.0 * 1.0 / (2.0 + len(zoomed)), [
-                [f"{display[key]} · target {t + 1}: biased (dim) vs compensated",
-                 f"{display[key]} · target {t + 1}: biased dim", f"{display[key]} · target {t + 1}"] for t in targets])
-            for t, title in zip(targets, titles):
+            for t in targets:
+                title = titles[key, t]
                 h = _zoom_half(truth, truth_xy, estimates, r0, t)
                 views.append(rrb.Spatial2DView(
                     origin="/world", name=title,
