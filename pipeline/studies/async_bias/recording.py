@@ -351,7 +351,6 @@ def _log_run(rr, rec, times, ui, r: int, truth: Truth, truth_xy: list[int], dete
     # ---- per variant and radar: biased / compensated tracks of the kept targets ---------------
     for key, est in estimates.items():
         steps_of = est_steps[key]
-        targets = np.asarray(est.targets, dtype=np.int64)
         has_bias = _has_bias(est)
         for n in range(S):
             rows = np.nonzero(np.asarray(est.sensor) == n)[0]
