@@ -5,7 +5,6 @@ colour from its place in the run's variant order; where curves coincide they dif
 
 from __future__ import annotations
 
-
 import numpy as np
 import polars as pl
 import pytest
