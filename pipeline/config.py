@@ -129,6 +129,20 @@ def validate(cfg: DictConfig) -> None:
     if ref is not None and ref not in cfg.filters:
         raise ConfigError(f"metrics.reference_variant: {ref!r} is not a variant of this experiment; "
                           f"choose one of {list(cfg.filters.keys())} or null.")
+    compute_ref = compute_reference(cfg)
+    if compute_ref is not None and compute_ref not in cfg.filters:
+        raise ConfigError(f"metrics.compute_reference: {compute_ref!r} is not a variant of this experiment; "
+                          f"choose one of {list(cfg.filters.keys())}, or null to print compute seconds only.")
+
+
+def compute_reference(cfg: DictConfig) -> str | None:
+    """The variant whose compute time the others are given as % of: ``metrics.compute_reference`` where
+    the experiment sets it (null: none, seconds only), else ``metrics.reference_variant``, the reference
+    of the paired comparisons."""
+    metrics = cfg.get("metrics") or {}
+    if "compute_reference" in metrics:
+        return metrics.get("compute_reference")
+    return metrics.get("reference_variant")
 
 
 OBJECTIVE_DIRECTIONS = ("minimize", "maximize")

@@ -232,15 +232,23 @@ def summary_row(key: str, display: str, series: str, window: str | None, value: 
             "statistic": statistic}
 
 
+SAME_AS_REFERENCE = "same as reference_key"
+
+
 def summary_rows(variants: Mapping[str, tuple[str, Mapping[str, RunValues | np.ndarray]]],
                  estimates: Mapping[str, TrackEstimate], windows: Sequence[Window], reference_key: str | None,
-                 runs: int, reached: tuple[str, int, int] | None = None, count_windows: Sequence[Window] = ()
-                 ) -> list[dict]:
+                 runs: int, reached: tuple[str, int, int] | None = None, count_windows: Sequence[Window] = (),
+                 compute_reference: str | None = SAME_AS_REFERENCE) -> list[dict]:
     """Per variant: each per-step metric over each window (averaged; counts summed: the registry's
     aggregation, pipeline.metrics), the count metrics also over each of ``count_windows``, compute
-    time, models per step (and both as % of the reference variant), and optionally the fraction of
-    runs reaching a group. Units come from the metric registry. Rows of metrics kept per run carry
-    their ``statistic`` (``summary_table`` turns them into intervals)."""
+    time (and as % of ``compute_reference``, by default the reference variant; none when it is None:
+    a study whose variants have no sensible common yardstick prints seconds only), models per step
+    (and as % of the reference variant), and optionally the fraction of runs reaching a group. Units
+    come from the metric registry; a percentage's unit names its reference ("% of FSIMM"), which the
+    printed table's header shows. Rows of metrics kept per run carry their ``statistic``
+    (``summary_table`` turns them into intervals)."""
+    if compute_reference == SAME_AS_REFERENCE:
+        compute_reference = reference_key
     rows: list[dict] = []
 
     def add(key, display, metric, window, values, w: Window | None = None):
@@ -265,16 +273,22 @@ def summary_rows(variants: Mapping[str, tuple[str, Mapping[str, RunValues | np.n
             if fraction is not None:
                 add(key, display, "group_reached_fraction", f"{name} by step {by_step}",
                     RunValues(fraction[:, None], "mean"), Window("", 0, 0))
-    if reference_key is not None and reference_key in variants:
-        ref_time = estimates[reference_key].compute_seconds
-        ref_models = {w.name: _models_per_step(variants[reference_key][1], w) for w in windows}
+    if compute_reference is not None and compute_reference in variants:
+        ref_time = estimates[compute_reference].compute_seconds
+        of = f"% of {variants[compute_reference][0]}"
         for key, (display, metrics) in variants.items():
             add(key, display, "compute_pct_of_reference", None, 100.0 * estimates[key].compute_seconds / ref_time)
+            rows[-1]["unit"] = of
+    if reference_key is not None and reference_key in variants:
+        ref_models = {w.name: _models_per_step(variants[reference_key][1], w) for w in windows}
+        of = f"% of {variants[reference_key][0]}"
+        for key, (display, metrics) in variants.items():
             for w in windows:
                 mine = _models_per_step(metrics, w)
                 ref = ref_models[w.name]
                 if mine is not None and ref is not None and np.isfinite(mine) and np.isfinite(ref) and ref:
                     add(key, display, "models_pct_of_reference", w.name, 100.0 * mine / ref)
+                    rows[-1]["unit"] = of
     return rows
 
 

@@ -25,7 +25,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from pipeline import schemas
 from pipeline.contract import RecordingInputs, Study
-from pipeline.config import build, check_objective, flatten, selected_variants, validate
+from pipeline.config import build, check_objective, compute_reference, flatten, selected_variants, validate
 from pipeline.errors import ConfigError
 from pipeline.evaluate import Window, metrics_frame, summary_row, summary_rows, summary_table
 from pipeline.evaluate import resolved as per_step_values
@@ -476,7 +476,8 @@ def _evaluate(cfg: DictConfig, study: Study, sensor: Any, truth: Any, estimates:
         reached = (str(gr.group), list(cfg.models.groups.keys()).index(gr.group), int(gr.by_step))
     ref = cfg.metrics.get("reference_variant")
     ref = ref if ref in variants else None
-    rows = summary_rows(per_variant, estimates, windows, ref, runs, reached, count_windows)
+    rows = summary_rows(per_variant, estimates, windows, ref, runs, reached, count_windows,
+                        compute_reference(cfg))       # compute time as % of it (pipeline.config)
     # a study's own rows read the per-step values (a RunValues resolved to its value over the runs)
     per_step = {v: (name, per_step_values(metrics)) for v, (name, metrics) in per_variant.items()}
     rows += [row if "statistic" in row else row | {"statistic": None}

@@ -38,7 +38,7 @@ def format_summary(summary: pl.DataFrame, experiment: str, runs: int,
         in_window = pl.lit(False) if window is None else pl.col("window") == window
         rows = summary.filter(pl.col("window").is_null() | in_window | pl.col("window").str.contains(" by step "))
         cols = printed_columns(rows["series"].to_list())       # the registry's labels, in its order
-        header = ["variant"] + [label for _, label in cols]
+        header = ["variant"] + [_with_reference(label, rows, m) for m, label in cols]
         table = [header]
         for v in variants:
             row = [v]
@@ -56,6 +56,17 @@ def format_summary(summary: pl.DataFrame, experiment: str, runs: int,
     if comparisons is not None and comparisons.height:
         lines += format_comparisons(comparisons, summary)
     return "\n".join(lines)
+
+
+def _with_reference(label: str, rows: pl.DataFrame, series: str) -> str:
+    """A percentage's label with the variant it is relative to, from its unit ("% of SIR-MM"):
+    "compute % of SIR-MM"; the label alone where the unit names none (or there is no unit column)."""
+    if "unit" not in rows.columns:
+        return label
+    units = rows.filter(pl.col("series") == series)["unit"].drop_nulls().unique(maintain_order=True).to_list()
+    if len(units) == 1 and units[0].startswith("% of ") and label.endswith("%"):
+        return f"{label} {units[0][2:]}"
+    return label
 
 
 def format_comparisons(comparisons: pl.DataFrame, summary: pl.DataFrame) -> list[str]:

@@ -465,5 +465,5 @@ def test_study_001_printed_table_is_unchanged(tmp_path):
     assert set(out.summary["window"].drop_nulls()) == {"all"}
     header = next(line for line in out.table.splitlines() if line.startswith("variant"))
     assert header.split("  ") and [c.strip() for c in header.split("  ") if c.strip()] == [
-        "variant", "acc RMSE X", "acc RMSE Y", "pos RMSE", "vel RMSE", "NEES", "models/step", "models %",
-        "compute s", "compute %"]
+        "variant", "acc RMSE X", "acc RMSE Y", "pos RMSE", "vel RMSE", "NEES", "models/step", "models % of FSIMM",
+        "compute s", "compute % of FSIMM"]                  # each percentage names its reference (issue 19)
