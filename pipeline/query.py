@@ -27,6 +27,10 @@ These tables are registered, all lazy:
     their columns differ by study (the union, null where a study has none). Large: read only when
     a query names them.
 
+``mtt-query tables`` lists per experiment its run folders, n_runs and variants, and its metrics grouped
+by the windows they have values in, then the tables' columns (the summary's config columns with
+``--config``). An unknown column's error names the close columns only.
+
 Only files with those names (and ``status.json``) are read,
 never hidden files or directories (the writers' ``.<name>.<random>.tmp`` temp files, ``.hydra``,
 ``.submitit``), never ``*.rejected`` and never ``<root>/cache``. A corrupt or truncated Parquet
@@ -67,8 +71,8 @@ from typing import Callable, Iterable, Mapping, Sequence
 
 import polars as pl
 
-__all__ = ["QueryError", "QueryWarning", "load_tables", "query", "runs_frame", "main",
-           "SUMMARY_COLUMNS", "METRICS_COLUMNS", "RUNS_COLUMNS", "LIST_COLUMNS"]
+__all__ = ["QueryError", "QueryWarning", "load_tables", "query", "runs_frame", "tables_overview",
+           "main", "SUMMARY_COLUMNS", "METRICS_COLUMNS", "RUNS_COLUMNS", "LIST_COLUMNS"]
 
 SUMMARY_FILE = "summary.parquet"
 METRICS_FILE = "metrics.parquet"
@@ -79,13 +83,16 @@ TABLE_FILES = {"summary": SUMMARY_FILE, "metrics": METRICS_FILE, "per_run": "per
 #: the estimates their variant_key) as columns, and the union of all files' columns is the table.
 STAGE_TABLES = ("truth", "estimates")
 
-#: Columns every summary has (in this order); config columns follow, sorted by name.
+#: Columns every summary has (in this order; null where an older file lacks one); the config
+#: columns follow, sorted by name: every other column of the summary is a config leaf.
 SUMMARY_COLUMNS: dict[str, pl.DataType] = {
     "run_id": pl.String(), "experiment": pl.String(), "status": pl.String(), "error": pl.String(),
     "variant": pl.String(), "variant_key": pl.String(), "metric": pl.String(), "component": pl.String(),
     "sensor": pl.Int32(), "target": pl.Int32(), "series": pl.String(), "window": pl.String(),
-    "value": pl.Float64(), "unit": pl.String(), "n_runs": pl.Int32(), "config_hash": pl.String(),
-    "overrides": pl.String(), "sweep": pl.String(), "job_num": pl.Int32(),
+    "value": pl.Float64(), "unit": pl.String(), "n_runs": pl.Int32(), "n_valid_runs": pl.Int32(),
+    "standard_error": pl.Float64(), "ci_low": pl.Float64(), "ci_high": pl.Float64(), "interval": pl.String(),
+    "config_hash": pl.String(), "overrides": pl.String(), "sweep": pl.String(), "job_num": pl.Int32(),
+    "estimates_from_cache": pl.Boolean(),
 }
 METRICS_COLUMNS: dict[str, pl.DataType] = {
     "run_id": pl.String(), "experiment": pl.String(), "variant": pl.String(),
@@ -121,6 +128,9 @@ RUNS_COLUMNS: dict[str, pl.DataType] = {
 LIST_COLUMNS = ["run_id", "experiment", "kind", "sweep", "job_num", "status", "started_at",
                 "runs", "overrides", "error"]
 TABLE_NAMES = ("summary", "metrics", "runs", "per_run", "comparisons", "truth", "estimates")
+#: Only the summary carries the run's config, one column per leaf (``"filters.vsimm.t1_mu"``).
+CONFIG_TABLES = ("summary",)
+
 #: What a query that names no table gets (the stage tables are large: read only when named).
 DEFAULT_TABLES = ("summary", "metrics", "runs", "per_run", "comparisons")
 ERROR_WIDTH = 120
@@ -540,15 +550,78 @@ def _schemas(tables: Mapping[str, pl.LazyFrame]) -> dict[str, pl.Schema]:
     return {n: lf.collect_schema() for n, lf in tables.items()}
 
 
-def _columns_text(tables: Mapping[str, pl.LazyFrame], sql: str) -> str:
-    schemas = _schemas(tables)
-    named = [n for n in schemas if re.search(rf"\b{n}\b", sql, re.IGNORECASE)] or list(schemas)
-    return "; ".join(f"{n}: " + ", ".join(f'"{c}"' if not re.fullmatch(r"[a-z_][a-z0-9_]*", c) else c
-                                          for c in schemas[n]) for n in named)
+def is_config_column(table: str, column: str) -> bool:
+    """A config leaf's column (only the summary has them: every column beyond SUMMARY_COLUMNS)."""
+    return table in CONFIG_TABLES and column not in FIXED_COLUMNS[table]
+
+
+def _quoted(column: str) -> str:
+    return column if re.fullmatch(r"[a-z_][a-z0-9_]*", column) else f'"{column}"'
+
+
+def _named_tables(tables: Mapping[str, pl.LazyFrame], sql: str) -> list[str]:
+    return [n for n in tables if re.search(rf"\b{n}\b", sql, re.IGNORECASE)] or list(tables)
+
+
+def close_names(name: str, candidates: Iterable[str], n: int = 6) -> list[str]:
+    """The candidates closest to ``name`` (difflib, case-insensitive), those it is the last dotted part
+    of (``t1_mu`` -> ``filters.vsimm.t1_mu``) and those it begins (``posit`` -> ``position_rmse``), in
+    that order, at most ``n``."""
+    import difflib
+
+    by_lower: dict[str, list[str]] = {}
+    for c in candidates:
+        by_lower.setdefault(str(c).lower(), []).append(str(c))
+    low = name.lower()
+    found = [c for c in by_lower.get(low, [])]
+    found += [c for k, cs in by_lower.items() if k != low and (k.endswith("." + low) or k.split(".")[-1] == low)
+              for c in cs]
+    found += [c for k in difflib.get_close_matches(low, list(by_lower), n=n, cutoff=0.6) for c in by_lower[k]]
+    if len(low) >= 3:                            # a name cut short: 'posit' -> 'position_rmse'
+        found += [c for k in sorted(by_lower) if k.startswith(low) for c in by_lower[k]]
+    return list(dict.fromkeys(found))[:n]
+
+
+def _column_hint(name: str, schemas: Mapping[str, pl.Schema], named: Sequence[str]) -> str:
+    """Close column names of the named tables, or (none close) their columns without the config columns."""
+    where: dict[str, list[str]] = {}
+    for t in named:
+        for c in close_names(name, schemas[t]):
+            where.setdefault(c, []).append(t)
+    more = "`mtt-query tables` lists every table's columns (`--config` with the config columns)"
+    if where:
+        ranked = close_names(name, list(where))
+        return (f"Close column names: " + ", ".join(f"{_quoted(c)} ({', '.join(where[c])})" for c in ranked)
+                + f". Columns: {more}.")
+    parts = []
+    for t in named:
+        shown = [c for c in schemas[t] if not is_config_column(t, c)]
+        hidden = len(schemas[t]) - len(shown)
+        parts.append(f"{t}: " + ", ".join(_quoted(c) for c in shown)
+                     + (f" and {hidden} config columns" if hidden else ""))
+    return f"No column is named like it. Columns: {'; '.join(parts)}. {more}."
+
+
+_MISSING_COLUMN = (re.compile(r'unable to find column "([^"]+)"'), re.compile(r"no column named '([^']+)' found"))
+_STRUCT = re.compile(r"no table or struct column named '([^']+)' found")
+
+
+def _missing_name(msg: str, sql: str) -> str | None:
+    for pattern in _MISSING_COLUMN:
+        found = pattern.search(msg)
+        if found:
+            return found.group(1)
+    found = _STRUCT.search(msg)
+    if found:          # an unquoted dotted name: its first part is taken for a table; the whole name is meant
+        prefix = re.escape(found.group(1))
+        dotted = re.search(rf'(?<![\w."]){prefix}(?:\.[A-Za-z_]\w*)+', sql)
+        return dotted.group(0) if dotted else found.group(1)
+    return None
 
 
 def _sql_error(e: Exception, sql: str, tables: Mapping[str, pl.LazyFrame]) -> QueryError:
     msg = _first_paragraph(str(e))
+    msg = re.sub(r"\s*Did you mean [^?]*\?", "", msg).rstrip(". ")         # we say which ones, from every table
     low = msg.lower()
     names = ", ".join(TABLE_NAMES)
     if ("relation" in low and "not found" in low) or (
@@ -559,8 +632,11 @@ def _sql_error(e: Exception, sql: str, tables: Mapping[str, pl.LazyFrame]) -> Qu
             "not found" in low or "unable to find" in low or "no column" in low
             or "struct column" in low)):
         dotted = " A dotted name must be double-quoted as a whole." if "struct column" in low else ""
-        return QueryError(f"SQL error: {msg}.{dotted} {QUOTING_HELP} Columns: "
-                          f"{_columns_text(tables, sql)}.")
+        name = _missing_name(msg, sql)
+        schemas = _schemas(tables)
+        hint = _column_hint(name, schemas, _named_tables(tables, sql)) if name else \
+            "Columns: `mtt-query tables` lists every table's columns (`--config` with the config columns)."
+        return QueryError(f"SQL error: {msg}.{dotted} {hint} {QUOTING_HELP}")
     if "parser error" in low or isinstance(e, pl.exceptions.SQLSyntaxError):
         return QueryError(f"SQL syntax error: {msg}. {QUOTING_HELP} In a shell, wrap the query "
                           "in double quotes and escape the inner ones, or pass it on stdin "
@@ -629,10 +705,128 @@ def query(sql: str, root: Path | str = "artifacts", sweep: Path | str | None = N
     return _run_sql(sql, _catalog(root, sweep, run, warn), warn)
 
 
-def tables_frame(tables: Mapping[str, pl.LazyFrame]) -> pl.DataFrame:
-    rows = [(n, c, str(dt)) for n, s in _schemas(tables).items() for c, dt in s.items()]
+def tables_frame(tables: Mapping[str, pl.LazyFrame], config: bool = True) -> pl.DataFrame:
+    """table, column, dtype of every column; ``config=False`` leaves out the summary's config columns."""
+    rows = [(n, c, str(dt)) for n, s in _schemas(tables).items() for c, dt in s.items()
+            if config or not is_config_column(n, c)]
     return pl.DataFrame(rows, schema={"table": pl.String, "column": pl.String, "dtype": pl.String},
                         orient="row")
+
+
+LIST_WIDTH = 8          # series listed per metric before "... (N more)"
+WRAP = 100              # the overview's line width
+
+
+def experiments_frame(tables: Mapping[str, pl.LazyFrame]) -> pl.DataFrame:
+    """Per experiment: its run folders, their Monte Carlo sizes (n_runs) and its variants, from the summary."""
+    df = tables["summary"].select("experiment", "run_id", "variant", "variant_key", "n_runs").collect()
+    rows = []
+    for (experiment,), part in df.group_by("experiment", maintain_order=True):
+        named = part.drop_nulls("variant_key").unique(["variant", "variant_key"], maintain_order=True)
+        rows.append((experiment, part["run_id"].n_unique(), sorted(part["n_runs"].drop_nulls().unique().to_list()),
+                     named["variant"].to_list(), named["variant_key"].to_list()))
+    return pl.DataFrame(rows, schema={"experiment": pl.String, "runs": pl.Int64, "n_runs": pl.List(pl.Int32),
+                                      "variants": pl.List(pl.String), "variant_keys": pl.List(pl.String)},
+                        orient="row").sort("experiment", nulls_last=True)
+
+
+def metrics_overview_frame(tables: Mapping[str, pl.LazyFrame]) -> pl.DataFrame:
+    """Per experiment and metric (the quantity): its series (the breakdowns), the summary's windows it has
+    a value in (null: window-free, "window" IS NULL) and whether the metrics table has it per step."""
+    metric = pl.coalesce("metric", "series").alias("metric")         # a summary from before the tidy columns: its series
+    summary = tables["summary"].select("experiment", metric, "series", "window").drop_nulls(["metric"]).collect()
+    per_step: set[tuple[str, str]] = set()
+    if "metrics" in tables:
+        steps = tables["metrics"].select("experiment", metric).unique().collect()
+        per_step = set(zip(steps["experiment"].to_list(), steps["metric"].to_list()))
+    rows = []
+    for (experiment, metric), part in summary.group_by(["experiment", "metric"], maintain_order=True):
+        rows.append((experiment, metric, part["series"].unique(maintain_order=True).to_list(),
+                     part["window"].unique(maintain_order=True).to_list(), (experiment, metric) in per_step))
+    return pl.DataFrame(rows, schema={"experiment": pl.String, "metric": pl.String, "series": pl.List(pl.String),
+                                      "windows": pl.List(pl.String), "per_step": pl.Boolean},
+                        orient="row").sort(["experiment", "metric"], nulls_last=True)
+
+
+def tables_overview(root: Path | str = "artifacts", sweep: Path | str | None = None, run: Path | str | None = None,
+                    *, config: bool = False, warn: Warn | None = None) -> dict[str, pl.DataFrame]:
+    """What ``mtt-query tables`` prints: ``experiments`` (run folders, n_runs, variants), ``metrics`` (per
+    experiment and metric its series, windows and whether it is per step) and ``columns`` (the tables'
+    columns; the summary's config columns only with ``config``)."""
+    cat = _catalog(root, sweep, run, warn or _default_warn)
+    tables = cat.lazy()
+    return {"experiments": experiments_frame(tables), "metrics": metrics_overview_frame(tables),
+            "columns": tables_frame(tables, config)}
+
+
+def _metric_names(part: pl.DataFrame) -> list[str]:
+    """One group's metrics as listed: the series where they differ from the metric, a consistency band
+    folded into its metric ("nees (+_lower,_upper)"), 4 or more of one family as "fault_runs_* (6)"."""
+    series = dict(zip(part["metric"].to_list(), part["series"].to_list()))
+    names = sorted(series)
+    folded = {m for m in names for b in ("_lower", "_upper") if m.endswith(b) and m[: -len(b)] in series}
+    family: dict[str, list[str]] = {}
+    for m in names:
+        if m not in folded and m.count("_") >= 2:
+            family.setdefault("_".join(m.split("_")[:2]) + "_", []).append(m)
+    families = {prefix: ms for prefix, ms in family.items() if len(ms) >= 4}
+    in_family = {m for ms in families.values() for m in ms}
+    out = []
+    for m in names:
+        if m in folded or m in in_family:
+            continue
+        text = m if series[m] == [m] else f"{m} (series {_sample(series[m], LIST_WIDTH)})"
+        bands = [b for b in ("_lower", "_upper") if m + b in folded]
+        out.append(text + (" (+" + ",".join(bands) + ")" if bands else ""))
+    out += [f"{prefix}* ({len(ms)})" for prefix, ms in families.items()]
+    return sorted(out)
+
+
+def overview_text(frames: Mapping[str, pl.DataFrame], markdown: bool = False) -> str:
+    """Per experiment: its runs, variants, and its metrics grouped by the windows they have values in."""
+    import textwrap
+
+    lines = ['What each experiment holds. summary, per_run and comparisons: one row per variant x series x '
+             '"window" (metric = the quantity, series = its breakdown by axis, sensor, target); metrics: per step '
+             '(where marked). Compare only rows of one experiment and one n_runs.', ""]
+    metrics = frames["metrics"]
+    for row in frames["experiments"].iter_rows(named=True):
+        variants = ", ".join(f"{v} ({k})" if v != k else k for v, k in zip(row["variants"], row["variant_keys"]))
+        head = (f"{row['experiment']}: {row['runs']} run folder{'s' if row['runs'] != 1 else ''} "
+                f"(n_runs {', '.join(str(n) for n in row['n_runs'])}); variants {variants}")
+        lines.append(f"### {head}" if markdown else textwrap.fill(head, WRAP, subsequent_indent="    "))
+        mine = metrics.filter(pl.col("experiment") == row["experiment"]).with_columns(
+            pl.col("windows").list.eval(pl.element().fill_null("<NULL>")).list.join(", ").alias("key"))
+        groups = mine.group_by(["key", "per_step"], maintain_order=True).agg("metric", "series", "windows")
+        groups = groups.with_columns(pl.col("metric").list.len().alias("n")).sort(
+            [pl.col("key") == "<NULL>", pl.col("per_step").not_(), pl.col("n")], descending=[False, False, True])
+        for g in groups.iter_rows(named=True):
+            windows = [w for w in g["windows"][0] if w is not None]
+            where = ('"window" IS NULL' if not windows else
+                     '"window" ' + ", ".join(f"'{w}'" for w in windows) + (" or NULL" if None in g["windows"][0] else ""))
+            where += "; per step in metrics too" if g["per_step"] else ""
+            part = pl.DataFrame({"metric": g["metric"], "series": g["series"]})
+            names = ", ".join(f"`{n}`" if markdown else n for n in _metric_names(part))
+            if markdown:
+                lines.append(f"- {where}: {names}")
+            else:
+                lines.append(textwrap.fill(where + ":", WRAP, initial_indent="  ", subsequent_indent="      "))
+                lines.append(textwrap.fill(names, WRAP, initial_indent="      ", subsequent_indent="      ",
+                                           break_on_hyphens=False))
+        lines.append("")
+    return "\n".join(lines) + "\n"
+
+
+def render_overview(frames: Mapping[str, pl.DataFrame], fmt: str, config: bool, hidden: int) -> str:
+    """The ``tables`` command's output: the overview per experiment, then the columns (csv: the columns only)."""
+    if fmt == "csv":
+        return render(frames["columns"], fmt)
+    title = "Columns"
+    if not config and hidden:
+        title += (f" ({hidden} config columns of summary left out, one per config leaf such as "
+                  f"\"mc.runs\": `mtt-query tables --config` lists them)")
+    heading = f"## {title}\n\n" if fmt == "markdown" else f"{title}:\n"
+    return overview_text(frames, markdown=fmt == "markdown") + "\n" + heading + render(frames["columns"], fmt, max_rows=0)
 
 
 # ---- output ---------------------------------------------------------------------------------
@@ -704,7 +898,9 @@ Query the pipeline's artifacts (runs/, multirun/ under --root) with SQL.
 
 Tables: summary (every summary.parquet: one row per variant x metric x window, plus one
 column per config leaf named by its dotted key), metrics (every metrics.parquet: per-step
-series), runs (one row per run/job from status.json; the `list` frame)."""
+series), runs (one row per run/job from status.json; the `list` frame), per_run, comparisons
+(and truth, estimates when named). `mtt-query tables` lists each experiment's variants, metrics
+and windows first."""
 
 SQL_EPILOG = """\
 quoting:
@@ -759,10 +955,14 @@ def build_parser() -> argparse.ArgumentParser:
                                    "Sorted by started_at.")
     _common(p)
     p.add_argument("--experiment", metavar="NAME", help="only runs of this experiment")
-    p = sub.add_parser("tables", help="the registered tables, their columns and dtypes",
-                       description="The registered tables (summary, metrics, runs), their columns "
-                                   "and dtypes, as the sql command sees them.")
+    p = sub.add_parser("tables", help="each experiment's variants, metrics and windows; the tables' columns",
+                       description="What the sql command can ask: per experiment its run folders, Monte Carlo "
+                                   "sizes and variants; per experiment and metric its series and windows; then "
+                                   "the tables' columns and dtypes, without the summary's config columns unless "
+                                   "--config. --format csv prints the columns only.")
     _common(p)
+    p.add_argument("--config", action="store_true",
+                   help="also list the summary's config columns (one per config leaf: \"mc.runs\", ...)")
     p = sub.add_parser("sql", help="run a SQL query over summary, metrics and runs",
                        description="Run a polars SQL query over the tables summary, metrics "
                                    "and runs.",
@@ -802,7 +1002,7 @@ def _run(args: argparse.Namespace) -> pl.DataFrame:
                                  f"'{args.root}'. Experiments: {_sample(names)}.")
         return df.select(LIST_COLUMNS)
     if args.command == "tables":
-        return tables_frame(load_tables(args.root, args.sweep, args.run, warn=_stderr_warn))
+        raise AssertionError("main() prints the tables command")
     sql = _read_sql(args)
     return _run_sql(sql, _catalog(args.root, args.sweep, args.run, _stderr_warn), _stderr_warn)
 
@@ -812,6 +1012,17 @@ def main(argv: Sequence[str] | None = None) -> int:
     0 on success, 2 on bad input (message on stderr, no traceback)."""
     args = build_parser().parse_args(argv)   # argparse itself exits 2 on bad options
     try:
+        if args.command == "tables":
+            frames = tables_overview(args.root, args.sweep, args.run, config=True, warn=_stderr_warn)
+            shown = frames["columns"].filter(pl.col("table") == "summary")["column"]
+            hidden = sum(is_config_column("summary", c) for c in shown)
+            if not args.config:
+                frames["columns"] = frames["columns"].filter(
+                    ~pl.struct("table", "column").map_elements(lambda r: is_config_column(r["table"], r["column"]),
+                                                               return_dtype=pl.Boolean))
+            sys.stdout.write(render_overview(frames, args.format, args.config, hidden))
+            sys.stdout.flush()
+            return 0
         df = _run(args)
         sys.stdout.write(render(df, args.format, args.max_rows))
         sys.stdout.flush()

@@ -223,7 +223,8 @@ def test_casts_the_scanner_cannot_do(tmp_path, capsys):
 
 
 def test_tables_command(root, capsys):
-    code, out, err = run_cli(capsys, "tables", "--root", str(root), "--format", "csv")
+    # the config columns only with --config (issue 19: tests/test_query_overview.py checks without it)
+    code, out, err = run_cli(capsys, "tables", "--root", str(root), "--format", "csv", "--config")
     assert code == 0
     df = pl.read_csv(io.StringIO(out))
     assert set(df["table"]) == {"summary", "metrics", "runs", "per_run", "comparisons"}
