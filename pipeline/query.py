@@ -29,7 +29,10 @@ These tables are registered, all lazy:
 
 ``mtt-query tables`` lists per experiment its run folders, n_runs and variants, and its metrics grouped
 by the windows they have values in, then the tables' columns (the summary's config columns with
-``--config``). An unknown column's error names the close columns only.
+``--config``). After a query, every string literal compared with a name column (``metric``, ``series``,
+``variant``, ``"window"``, ...: ``=``, ``<>``, ``IN (...)``, ``LIKE``) that none of the column's values in
+the queried tables matches is warned about with the close values (difflib); an unknown column's error
+names the close columns only.
 
 Only files with those names (and ``status.json``) are read,
 never hidden files or directories (the writers' ``.<name>.<random>.tmp`` temp files, ``.hydra``,
@@ -71,7 +74,7 @@ from typing import Callable, Iterable, Mapping, Sequence
 
 import polars as pl
 
-__all__ = ["QueryError", "QueryWarning", "load_tables", "query", "runs_frame", "tables_overview",
+__all__ = ["QueryError", "QueryWarning", "load_tables", "query", "runs_frame", "tables_overview", "check_literals",
            "main", "SUMMARY_COLUMNS", "METRICS_COLUMNS", "RUNS_COLUMNS", "LIST_COLUMNS"]
 
 SUMMARY_FILE = "summary.parquet"
@@ -130,7 +133,9 @@ LIST_COLUMNS = ["run_id", "experiment", "kind", "sweep", "job_num", "status", "s
 TABLE_NAMES = ("summary", "metrics", "runs", "per_run", "comparisons", "truth", "estimates")
 #: Only the summary carries the run's config, one column per leaf (``"filters.vsimm.t1_mu"``).
 CONFIG_TABLES = ("summary",)
-
+#: The columns whose values name things (a typo in a literal compared with them matches no row):
+#: the query warns when a literal is none of their values.
+NAME_COLUMNS = ("experiment", "variant", "variant_key", "reference_key", "metric", "component", "series", "window")
 #: What a query that names no table gets (the stage tables are large: read only when named).
 DEFAULT_TABLES = ("summary", "metrics", "runs", "per_run", "comparisons")
 ERROR_WIDTH = 120
@@ -591,7 +596,7 @@ def _column_hint(name: str, schemas: Mapping[str, pl.Schema], named: Sequence[st
     more = "`mtt-query tables` lists every table's columns (`--config` with the config columns)"
     if where:
         ranked = close_names(name, list(where))
-        return (f"Close column names: " + ", ".join(f"{_quoted(c)} ({', '.join(where[c])})" for c in ranked)
+        return ("Close column names: " + ", ".join(f"{_quoted(c)} ({', '.join(where[c])})" for c in ranked)
                 + f". Columns: {more}.")
     parts = []
     for t in named:
@@ -646,6 +651,93 @@ def _sql_error(e: Exception, sql: str, tables: Mapping[str, pl.LazyFrame]) -> Qu
                       f"columns). {QUOTING_HELP}")
 
 
+# ---- literals that name nothing -------------------------------------------------------------
+_STRING = re.compile(r"'(?:[^']|'')*'")
+_NAME_COLUMN = (r'(?<![\w."])(?:[A-Za-z_]\w*\.)?(?P<q>"?)(?P<col>' + "|".join(NAME_COLUMNS)
+                + r')(?P=q)(?![\w."])')
+_LITERAL = r"(?P<lit>'(?:[^']|'')*')"
+_COMPARED = re.compile(_NAME_COLUMN + r"\s*(?P<op>==|=|<>|!=|(?:NOT\s+)?I?LIKE)\s*" + _LITERAL, re.IGNORECASE)
+_REVERSED = re.compile(_LITERAL + r"\s*(?P<op>==|=|<>|!=)\s*" + _NAME_COLUMN, re.IGNORECASE)
+_IN_LIST = re.compile(_NAME_COLUMN + r"\s+(?P<op>(?:NOT\s+)?IN)\s*\((?P<list>\s*'(?:[^']|'')*'(?:\s*,\s*'(?:[^']|'')*')*\s*)\)",
+                      re.IGNORECASE)
+
+
+@dataclass(frozen=True)
+class _Compared:
+    column: str
+    op: str
+    literal: str
+    position: int = 0
+
+
+def compared_literals(sql: str) -> list[_Compared]:
+    """String literals compared with a name column (metric = 'x', 'x' = series, s."window" IN ('a', 'b'),
+    variant LIKE 'AO%'), outside string literals."""
+    spans = [m.span() for m in _STRING.finditer(sql)]
+
+    def outside(pos: int) -> bool:
+        return not any(a < pos < b for a, b in spans)
+
+    out = []
+    for pattern in (_COMPARED, _REVERSED):
+        for m in pattern.finditer(sql):
+            if outside(m.start()) and outside(m.start("col")):
+                out.append(_Compared(m.group("col").lower(), " ".join(m.group("op").upper().split()),
+                                     m.group("lit")[1:-1].replace("''", "'"), m.start("lit")))
+    for m in _IN_LIST.finditer(sql):
+        if outside(m.start()):
+            op = " ".join(m.group("op").upper().split())
+            out += [_Compared(m.group("col").lower(), op, lit.group(0)[1:-1].replace("''", "'"),
+                              m.start("list") + lit.start()) for lit in _STRING.finditer(m.group("list"))]
+    return sorted(out, key=lambda c: c.position)
+
+
+def _like(pattern: str, insensitive: bool) -> re.Pattern[str]:
+    parts = ["." if ch == "_" else ".*" if ch == "%" else re.escape(ch) for ch in pattern]
+    return re.compile("".join(parts), re.IGNORECASE | re.DOTALL if insensitive else re.DOTALL)
+
+
+def check_literals(sql: str, tables: Mapping[str, pl.LazyFrame], warn: Warn) -> None:
+    """Warn, once per literal, where a string compared with a name column (metric, series, variant,
+    window, ...) is none of that column's values in the tables the query reads: ``metric = 'pos_rmse'``
+    silently matches no row. The warning names the close values (difflib) or, none close, some values."""
+    compared = compared_literals(sql)
+    if not compared:
+        return
+    named = _named_tables(tables, sql)
+    schemas = _schemas({n: tables[n] for n in named})
+    values: dict[str, tuple[list[str], list[str]]] = {}
+    for column in dict.fromkeys(c.column for c in compared):
+        having = [t for t in named if column in schemas[t]]
+        if not having:
+            continue
+        frames = [tables[t].select(pl.col(column).cast(pl.String)).unique() for t in having]
+        found = pl.concat(frames).unique().collect()[column].drop_nulls().sort().to_list()
+        values[column] = (found, having)
+    said = set()
+    for c in compared:
+        if c.column not in values or (c.column, c.literal) in said:
+            continue
+        present, having = values[c.column]
+        if "LIKE" in c.op:
+            matcher = _like(c.literal, c.op.endswith("ILIKE"))
+            if any(matcher.fullmatch(v) for v in present):
+                continue
+            probe, what = c.literal.replace("%", ""), f"no {c.column} matches {c.op} '{c.literal}'"
+        else:
+            if c.literal in present:
+                continue
+            probe, what = c.literal, f"'{c.literal}' is no {c.column}"
+        said.add((c.column, c.literal))
+        effect = "excluding it excludes nothing" if c.op.startswith("NOT") or c.op in ("<>", "!=") \
+            else "comparing with it matches no row"
+        close = close_names(probe, present)
+        listed = (f"close: {', '.join(repr(v) for v in close)}" if close
+                  else f"its values: {_sample([repr(v) for v in present], 12)}")
+        warn(f"{what} in {', '.join(having)} ({effect}); {listed}. "
+             f"`mtt-query tables` lists each experiment's metrics, series and windows.")
+
+
 def _execute(sql: str, tables: Mapping[str, pl.LazyFrame]) -> pl.DataFrame:
     ctx = pl.SQLContext(frames=dict(tables), eager=False)
     res = ctx.execute(sql, eager=False)
@@ -679,7 +771,9 @@ def _run_sql(sql: str, cat: _Catalog, warn: Warn) -> pl.DataFrame:
     names = [n for n in TABLE_NAMES if re.search(rf"\b{n}\b", sql, re.IGNORECASE)] or DEFAULT_TABLES
     tables = cat.lazy(names)
     try:
-        return _execute(sql, tables)
+        result = _execute(sql, tables)
+        check_literals(sql, tables, warn)
+        return result
     except pl.exceptions.PolarsError as e:
         # A file whose footer reads fine but whose data pages are damaged fails only at
         # collect time, without a file name: find it, skip it, run again.
@@ -900,7 +994,8 @@ Tables: summary (every summary.parquet: one row per variant x metric x window, p
 column per config leaf named by its dotted key), metrics (every metrics.parquet: per-step
 series), runs (one row per run/job from status.json; the `list` frame), per_run, comparisons
 (and truth, estimates when named). `mtt-query tables` lists each experiment's variants, metrics
-and windows first."""
+and windows first. A string compared with a name column (metric = 'pos_rmse') that is none of its
+values is warned about on stderr, with the close names."""
 
 SQL_EPILOG = """\
 quoting:

@@ -1,6 +1,7 @@
 """Issue 19: ``mtt-query tables`` lists each experiment's variants, metrics and windows first and the
-tables' columns without the config columns (``--config`` adds them); an unknown column's error names
-the close columns only. On a tiny artifacts tree written as the runner writes it."""
+tables' columns without the config columns (``--config`` adds them); a string literal compared with a
+name column that matches none of its values is warned about with the close names; an unknown column's
+error names the close columns only. On a tiny artifacts tree written as the runner writes it."""
 
 from __future__ import annotations
 
@@ -11,8 +12,7 @@ from pathlib import Path
 import polars as pl
 import pytest
 
-from pipeline import query as q
-from pipeline.query import QueryWarning, main, tables_overview
+from pipeline.query import QueryWarning, compared_literals, main, query, tables_overview
 
 RUN_AO = "runs/ao_vsimm_s1/2026-11-20_10-00-00"
 RUN_AO_20 = "runs/ao_vsimm_s1/2026-11-21_10-00-00"
@@ -128,6 +128,49 @@ def test_an_old_summary_without_the_metric_column_lists_its_series(tmp_path, cap
         frames = tables_overview(root)
     vsimm = frames["metrics"].filter(pl.col("experiment") == "ao_vsimm_sweep")
     assert set(vsimm["metric"]) == {"acceleration_rmse_x", "position_rmse", "models_evaluated"}
+
+
+# ---- literals that name nothing --------------------------------------------------------------------
+def test_the_literals_compared_with_name_columns():
+    sql = ("SELECT 'metric = ''x''' AS t, \"filters.a.variant\" FROM summary s WHERE s.metric = 'pos' "
+           "AND 'all' = \"window\" AND variant IN ('A', 'B''s') AND series NOT LIKE 'det%' "
+           "AND s.\"window\" <> 'w' AND value = 'v' AND \"filters.a.variant\" = 'cfg'")
+    found = [(c.column, c.op, c.literal) for c in compared_literals(sql)]
+    assert found == [("metric", "=", "pos"), ("window", "=", "all"), ("variant", "IN", "A"),
+                     ("variant", "IN", "B's"), ("series", "NOT LIKE", "det%"), ("window", "<>", "w")]
+
+
+def test_a_literal_that_is_no_metric_warns_with_the_close_names(root, capsys):
+    code, out, err = cli(capsys, "sql", "SELECT * FROM summary WHERE metric = 'pos_rmse'", "--root", str(root),
+                         "--format", "csv")
+    assert code == 0 and pl.read_csv(io.StringIO(out)).height == 0     # no row, as before ...
+    warning = [ln for ln in err.splitlines() if ln.startswith("mtt-query: warning:")]
+    assert len(warning) == 1                                          # ... but said, once, on stderr
+    assert "'pos_rmse' is no metric in summary" in warning[0] and "'position_rmse'" in warning[0]
+    assert "matches no row" in warning[0] and "mtt-query tables" in warning[0]
+    # series, variant (case), window, IN lists, LIKE, the per-step table; each literal once
+    sql = ("SELECT COUNT(*) AS n FROM metrics m JOIN summary s ON m.run_id = s.run_id WHERE m.series IN "
+           "('position_rmse', 'acc_rmse_x') AND s.variant = 'Fsimm' AND s.\"window\" = 'after-switch' "
+           "AND s.experiment LIKE 'mie_lo' AND s.variant <> 'Fsimm'")
+    code, _, err = cli(capsys, "sql", sql, "--root", str(root), "--format", "csv")
+    lines = err.splitlines()
+    assert code == 0 and len(lines) == 4, err
+    assert "'acc_rmse_x' is no series in summary, metrics" in lines[0] and "'acceleration_rmse_x'" in lines[0]
+    assert "'Fsimm' is no variant" in lines[1] and "close: 'FSIMM'" in lines[1]
+    assert "'after-switch' is no window" in lines[2] and "'after_switch'" in lines[2]
+    assert "no experiment matches LIKE 'mie_lo'" in lines[3] and "'mie_los'" in lines[3]
+    code, _, err = cli(capsys, "sql", "SELECT * FROM summary WHERE series <> 'posit'", "--root", str(root))
+    assert "excluding it excludes nothing" in err and "'position_rmse'" in err
+
+
+def test_literals_that_exist_warn_nothing(root, capsys):
+    sql = ("SELECT variant, AVG(value) AS v FROM summary WHERE metric = 'acceleration_rmse' AND \"window\" = 'all' "
+           "AND variant IN ('FSIMM', 'AO-VSIMM') AND series LIKE 'acceleration_rmse_%' AND experiment = 'ao_vsimm_s1' "
+           "AND 'x = ''nope''' <> 'y' GROUP BY ALL ORDER BY ALL")
+    code, out, err = cli(capsys, "sql", sql, "--root", str(root), "--format", "csv")
+    assert code == 0 and err == "" and pl.read_csv(io.StringIO(out)).height == 2
+    with pytest.warns(QueryWarning, match="'pos_rmse' is no metric"):       # the Python API: a QueryWarning
+        assert query("SELECT * FROM summary WHERE metric = 'pos_rmse'", root=root).height == 0
 
 
 # ---- an unknown column: the close ones only --------------------------------------------------------
