@@ -905,8 +905,8 @@ def overview_text(frames: Mapping[str, pl.DataFrame], markdown: bool = False) ->
                 lines.append(f"- {where}: {names}")
             else:
                 lines.append(textwrap.fill(where + ":", WRAP, initial_indent="  ", subsequent_indent="      "))
-                lines.append(textwrap.fill(names, WRAP, initial_indent="      ", subsequent_indent="      ",
-                                           break_on_hyphens=False))
+                lines.append(textwrap.fill(names.replace(" (+", "\0(+"), WRAP, initial_indent="      ",
+                                           subsequent_indent="      ", break_on_hyphens=False).replace("\0", " "))
         lines.append("")
     return "\n".join(lines) + "\n"
 
