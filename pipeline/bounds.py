@@ -2,9 +2,13 @@
 
 A bound node (config ``bound``, ``_target_`` a study's bound class, e.g.
 pipeline.studies.ao_vsimm.bound.KnownInputBound) gives a single-target study
-``position_bound(truth, sensor) -> (K,)`` = sqrt(trace) of the position block of the PCRLB at each
-scan [m] (NaN before the filters' first estimate); the study adds the metrics ``position_bound`` and
-``position_rmse_over_bound`` (RMSE / sqrt(PCRLB): 1 = at the bound). This module holds what the
+``position_bound(truth, sensor) -> (K,)`` = sqrt(trace) of the position block of the PCRLB of the
+process that generated the truth at each scan [m] (NaN before the filters' first estimate), and
+optionally ``position_bound_model`` = the same under the filters' assumed model; the study adds
+them and the ratios ``position_rmse_over_bound`` / ``position_rmse_over_bound_model`` (RMSE /
+sqrt(PCRLB): 1 = at the bound). One meaning per name in every study: below 1 against
+``position_bound`` beyond Monte Carlo error is a bug; against ``position_bound_model`` it means
+the truth does not follow the filters' model. This module holds what the
 studies' bounds share: argument checks, the scan interval, the per-truth memo and the metrics.
 """
 
@@ -51,9 +55,14 @@ class PerTruth:
 
 
 def bound_metrics(bound, truth: Truth, sensor, position_rmse: RunValues) -> dict[str, np.ndarray | RunValues]:
-    """``position_bound`` (K,) and ``position_rmse_over_bound`` (the RMSE kept per run, over the bound)
-    for a bound node (None: none)."""
+    """For a bound node (None: none): ``position_bound`` (K,), the PCRLB of the process that made the
+    truth, and ``position_rmse_over_bound`` (the RMSE kept per run, over it); with a node that also
+    has ``position_bound_model`` (the filters' assumed model), that bound and its ratio too."""
     if bound is None:
         return {}
     limit = bound.position_bound(truth, sensor)
-    return {"position_bound": limit, "position_rmse_over_bound": position_rmse.over(limit)}
+    out = {"position_bound": limit, "position_rmse_over_bound": position_rmse.over(limit)}
+    if hasattr(bound, "position_bound_model"):
+        model = bound.position_bound_model(truth, sensor)
+        out |= {"position_bound_model": model, "position_rmse_over_bound_model": position_rmse.over(model)}
+    return out

@@ -665,8 +665,10 @@ def write_run_report(run_dir: Path, out_dir: Path | None = None, current: bool =
     ratio = tables.query(BUILTIN_QUERIES["bound_ratio_by_window"])
     if ratio.height:
         lines += ["Position RMSE / sqrt(PCRLB) averaged over each summary window (1 = at the bound). `bound`: the "
-                  "clairvoyant or study bound; `bound_model`: the bound of the filters' own motion model (the "
-                  "metric units in summary.parquet say which model each is):", "",
+                  "PCRLB of the process that generated the truth, a bound for any unbiased estimator of this "
+                  "truth: a ratio below 1 beyond Monte Carlo error would be a bug. `bound_model`, beside it: the "
+                  "PCRLB under the filters' own motion model, which a truth that does not follow that model (a "
+                  "deterministic profile) lets a filter undercut (ratio below 1):", "",
                   _md_table(ratio.pivot(on="window", index=["variant", "bound"], values="rmse_over_bound")), "",
                   _sql_block("bound_ratio_by_window", BUILTIN_QUERIES["bound_ratio_by_window"]), ""]
     for fig in limit_figures(tables):

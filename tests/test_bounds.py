@@ -5,6 +5,7 @@ with the range while it is passive."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from hydra import compose, initialize_config_dir
 
 from filters.bounds import posterior_crlb
@@ -72,7 +73,7 @@ def test_study_001_known_input_bound_is_the_covariance_of_an_imm_of_identical_mo
     z = np.random.default_rng(0).standard_normal((1, K, 2)) * noise
     series = MeasurementSeries(time, z, noise**2 * np.eye(2), np.ones((1, K), bool), np.zeros(K, dtype=int))
     P = FSIMM(models, initial_model="a").run(series).covariance[0]
-    bound = KnownInputBound(q).position_bound(truth, PositionSensor(noise_std=noise))
+    bound = KnownInputBound(0.0, q).position_bound_model(truth, PositionSensor(noise_std=noise))
     assert np.isnan(bound[0])
     np.testing.assert_allclose(bound[1:], np.sqrt(P[1:, 0, 0] + P[1:, 2, 2]), rtol=1e-9)
 
@@ -116,3 +117,72 @@ def test_studies_001_and_000_report_rmse_over_the_bound(tmp_path):
             rmse = mine.filter(pl.col("series") == "position_rmse").sort("step")["value"].to_numpy()
             assert np.all(np.isfinite(bound[1:])) and np.all(bound[1:] > 0), (experiment, key)
             np.testing.assert_allclose(ratio[2:], rmse[2:] / bound[2:])
+
+
+# ---- issue 22: one meaning per name: position_bound (the truth's process), position_bound_model ----
+def _cv_case(K: int = 30, noise: float = 12.0):
+    from pipeline.data import Truth
+    from pipeline.studies.ao_vsimm.sensor import PositionSensor
+    truth = Truth(np.arange(K, dtype=float), np.zeros((1, K, 1, 4)), ("x", "vx", "y", "vy"), {})
+    return truth, PositionSensor(noise_std=noise), noise
+
+
+def test_the_deterministic_truths_bound_is_the_least_squares_covariance_of_all_scans_so_far():
+    """q = 0 (the paper's deterministic truth): the bound at scan k is the covariance of the
+    least-squares fit of a constant velocity to scans 0..k, (sum_i A_i' R^-1 A_i)^-1 with
+    A_i = H F^(i - k): finite, and shrinking as scans accumulate."""
+    from pipeline.studies.ao_vsimm.bound import KnownInputBound
+    truth, sensor, noise = _cv_case()
+    bound = KnownInputBound(0.0, 3.0).position_bound(truth, sensor)
+    F = np.kron(np.eye(2), np.array([[1.0, 1.0], [0.0, 1.0]]))          # (x, vx, y, vy), dt = 1
+    H = np.array([[1.0, 0, 0, 0], [0, 0, 1.0, 0]])
+    for k in range(1, truth.time.size):
+        A = [H @ np.linalg.matrix_power(np.linalg.inv(F), k - i) for i in range(k + 1)]
+        P = np.linalg.inv(sum(a.T @ a for a in A) / noise**2)
+        assert bound[k] == pytest.approx(np.sqrt(P[0, 0] + P[2, 2]), rel=1e-9)
+    assert np.all(np.diff(bound[1:]) < 0) and bound[-1] < bound[1] / 2
+
+
+def test_the_model_bound_is_a_kalman_covariance_recursion_with_the_models_noise():
+    """q > 0: P(k|k-1) = F P F' + q^2 G G', P = (I - K H) P(k|k-1), from the two-point start at scan 1."""
+    from pipeline.studies.ao_vsimm.bound import KnownInputBound
+    truth, sensor, noise = _cv_case()
+    q = 3.0
+    bound = KnownInputBound(0.0, q).position_bound_model(truth, sensor)
+    F = np.kron(np.eye(2), np.array([[1.0, 1.0], [0.0, 1.0]]))
+    G = np.kron(np.eye(2), np.array([[0.5], [1.0]]))
+    H = np.array([[1.0, 0, 0, 0], [0, 0, 1.0, 0]])
+    R = noise**2 * np.eye(2)
+    r = noise**2
+    P = np.kron(np.eye(2), np.array([[r, r], [r, 2 * r]]))             # two-point differencing, dt = 1
+    assert bound[1] == pytest.approx(np.sqrt(P[0, 0] + P[2, 2]))
+    for k in range(2, truth.time.size):
+        predicted = F @ P @ F.T + q**2 * G @ G.T
+        gain = predicted @ H.T @ np.linalg.inv(H @ predicted @ H.T + R)
+        P = (np.eye(4) - gain @ H) @ predicted
+        assert bound[k] == pytest.approx(np.sqrt(P[0, 0] + P[2, 2]), rel=1e-9)
+    assert np.all(bound[2:] > KnownInputBound(0.0, q).position_bound(truth, sensor)[2:])
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("experiment, overrides", [
+    ("ao_vsimm_s1", ["mc.runs=30", "scenario.steps=80"]),
+    ("mie_los", ["mc.runs=20"]),
+    ("sonar_case2", ["mc.runs=10", "scenario.duration=1200"]),
+    ("sonobuoy_case2", ["mc.runs=10", "scenario.duration=200", "target_model.particles=200"]),
+])
+def test_no_filter_beats_the_bound_of_the_truths_own_process_beyond_monte_carlo_error(tmp_path, experiment, overrides):
+    """Issue 22: against position_bound (the PCRLB of the process that made the truth) every variant's
+    RMSE ratio has its 95 % interval reaching 1 or above, in every window; studies 001 and 000 also
+    report position_bound_model, the bound of the filters' own model, which they may undercut."""
+    import polars as pl
+
+    from tests.test_pipeline import run_in_process
+    out, _ = run_in_process(tmp_path, experiment, f"experiment={experiment}", *overrides)
+    ratio = out.summary.filter((pl.col("series") == "position_rmse_over_bound") & pl.col("window").is_not_null()
+                               & pl.col("value").is_not_null())
+    assert ratio.height > 0
+    below = ratio.filter(pl.col("ci_high") < 1.0)
+    assert below.height == 0, below.select("variant", "window", "value", "ci_low", "ci_high")
+    if experiment in ("ao_vsimm_s1", "mie_los", "sonar_case2", "sonobuoy_case2"):
+        assert out.summary.filter(pl.col("series") == "position_rmse_over_bound_model").height > 0
