@@ -27,7 +27,7 @@ def test_a_changed_estimate_or_metric_is_reported_as_a_difference(tmp_path, caps
     metrics.with_columns(pl.when(pl.col("step") == 50).then(pl.col("value") + 1.0).otherwise(pl.col("value"))
                          .alias("value")).write_parquet(ctx.run_dir / "metrics.parquet")
     assert main([str(ctx.run_dir)]) == 1
-    assert "metrics.parquet: 7878 rows recomputed, DIFFERENT: column 'value' differs" in capsys.readouterr().out
+    assert "metrics.parquet: 8888 rows recomputed, DIFFERENT: column 'value' differs" in capsys.readouterr().out
 
 
 def test_a_folder_that_is_not_a_finished_run_is_a_clear_error(tmp_path, capsys):
