@@ -45,12 +45,14 @@ import time as _time
 import zlib
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
-from typing import Sequence
+from typing import Callable, Sequence
 
 import numpy as np
 
 from filters.base import TrackEstimate
 from filters.kalman import einsum, rows_times
+from filters.progress import SILENT, Progress
+from filters.progress import current as current_progress
 
 TARGET_STATES = ("x", "y", "vx", "vy")
 BUOYS = 4
@@ -384,6 +386,8 @@ class MultipleModelParticleFilter(_ModelParameters):
         streams)."""
         started = _time.perf_counter()
         R, K, _ = reports.z.shape
+        progress = current_progress()       # taken here: the worker threads do not inherit the listener
+        progress.start(K - 1, "scan", self.name)
         gens = reports.generators(f"particles:{self.name}")
         workers = max(1, min(self.workers or os.cpu_count() or 1, R))
         size = self.chunk_runs
@@ -395,19 +399,23 @@ class MultipleModelParticleFilter(_ModelParameters):
         if workers > 1:
             # numpy releases the GIL inside its array loops, so chunks of runs filter in parallel
             with ThreadPoolExecutor(max_workers=workers) as pool:
-                parts = list(pool.map(lambda c: self._run_chunk(reports, gens, c), chunks))
+                parts = list(pool.map(lambda c: self._run_chunk(reports, gens, c, progress), chunks))
         else:
-            parts = [self._run_chunk(reports, gens, c) for c in chunks]
+            parts = [self._run_chunk(reports, gens, c, progress) for c in chunks]
         extras = {name: np.concatenate([p[2][name] for p in parts]) for name in parts[0][2]}
         return TrackEstimate(reports.time.copy(), np.concatenate([p[0] for p in parts]),
                              np.concatenate([p[1] for p in parts]), extras, _time.perf_counter() - started)
 
-    def _run_chunk(self, all_reports: BuoyReports, all_gens, runs: slice):
+    def _run_chunk(self, all_reports: BuoyReports, all_gens, runs: slice, progress: Progress = SILENT):
         reports = all_reports.select(range(runs.start, runs.stop))
         model = SonobuoyModel(self.max_acceleration, self.target_sigma, self.buoy_sigma, self.noise_gain,
                               reports.likelihood(), np.asarray(reports.observer, dtype=float))
+        # each scan of this chunk is its share of the runs' scan: the scans done over all chunks
+        share = (runs.stop - runs.start) / all_reports.z.shape[0]
+        on_scan = None if progress is SILENT else (lambda: progress.advance(share))
         return filter_jump_markov(model, self.tpm, reports.time, reports.z, reports.prior_mean, reports.prior_std,
-                                  all_gens[runs], self.particles, self.auxiliary, self.lw_h, self.snapshot_particles)
+                                  all_gens[runs], self.particles, self.auxiliary, self.lw_h, self.snapshot_particles,
+                                  on_scan)
 
 
 class SonobuoyModel:
@@ -539,7 +547,7 @@ def _buoy_log_likelihood(buoy_xy: np.ndarray, z: np.ndarray, observer: np.ndarra
 
 def filter_jump_markov(model, tpm: np.ndarray, time: np.ndarray, z: np.ndarray, prior_mean: np.ndarray,
                        prior_std: np.ndarray, gens, particles: int, auxiliary: bool = True, lw_h: float = 0.0,
-                       snapshot_particles: int = 0):
+                       snapshot_particles: int = 0, on_scan: Callable[[], None] | None = None):
     """The multiple-model particle filter over scans 1..K-1, batched over runs (R) and particles.
 
     ``model`` supplies ``modes``, ``state_size``, ``noise_shape``, ``first_stage(X, z, dt)``,
@@ -552,6 +560,7 @@ def filter_jump_markov(model, tpm: np.ndarray, time: np.ndarray, z: np.ndarray, 
     Then output moments, resample every scan (seed step 5) and regularise (Liu-West, ``lw_h``).
     Returns states (R, K, n), covariances, extras (mode_probabilities, ess, weights_underflow, nis,
     nis_dof[, particles, particle_modes]); the NIS when the model has ``innovation_nis``.
+    ``on_scan()`` is called after each scan (progress; it reads and changes nothing here).
     """
     R, K = z.shape[:2]
     N, M, n = particles, model.modes, model.state_size
@@ -614,6 +623,8 @@ def filter_jump_markov(model, tpm: np.ndarray, time: np.ndarray, z: np.ndarray, 
             X = liu_west(X, lw_h, _stack(gens, lambda g: g.standard_normal((N, n), dtype=np.float32)))
         if P:
             cloud[:, k], cloud_modes[:, k] = X[:, spaced], modes[:, spaced]
+        if on_scan is not None:
+            on_scan()
     extras = {"mode_probabilities": mode_probability, "ess": ess, "weights_underflow": underflow, "nis": nis,
               "nis_dof": nis_dof}
     if P:
@@ -663,6 +674,8 @@ class BearingsEKF(_ModelParameters):
         states[:, 0], covariances[:, 0] = x, P
         nis, nis_dof = np.full((R, K), np.nan), np.zeros((R, K))     # its own innovation (moment-matched R)
         observer = np.asarray(reports.observer, dtype=float)
+        progress = current_progress()
+        progress.start(K - 1, "scan", self.name)
         for k in range(1, K):
             dt = float(reports.time[k] - reports.time[k - 1])
             F = np.kron(np.eye(5), cv_transition(dt))
@@ -686,6 +699,7 @@ class BearingsEKF(_ModelParameters):
             P = A @ P @ np.swapaxes(A, -1, -2) + gain @ Rm @ np.swapaxes(gain, -1, -2)
             P = 0.5 * (P + np.swapaxes(P, -1, -2))
             states[:, k], covariances[:, k] = x, P
+            progress.advance()
         return TrackEstimate(reports.time.copy(), states, covariances, {"nis": nis, "nis_dof": nis_dof},
                              _time.perf_counter() - started)
 

@@ -187,6 +187,45 @@ def test_filters_run_and_are_invariant_to_chunking_threads_and_batch():
     assert np.isfinite(ekf.state).all() and np.allclose(ekf.covariance, np.swapaxes(ekf.covariance, -1, -2))
 
 
+class _Heard:
+    """A filters.progress listener that keeps what it hears (thread-safe: the chunks' threads report)."""
+
+    def __init__(self) -> None:
+        import threading
+        self.lock, self.starts, self.done = threading.Lock(), [], 0.0
+
+    def start(self, total, unit="step", label=None):
+        with self.lock:
+            self.starts.append((total, unit, label))
+            self.done = 0.0
+
+    def advance(self, amount=1.0):
+        with self.lock:
+            self.done += amount
+
+
+@pytest.mark.parametrize("chunk_runs, workers", [(None, 1), (1, 2), (2, 2)])
+def test_the_filters_report_their_scans_and_reporting_changes_nothing(chunk_runs, workers):
+    """Heard through filters.progress, the particle filter's chunks of runs add up to its scans (each
+    scan of a chunk counts its share of the runs), whatever the chunking and threads; the EKF counts
+    its scans. The estimates are bit-identical with and without a listener."""
+    from filters.progress import listening
+    _, reports = _reports(runs=3, duration=100.0, clutter=True)
+    K = reports.time.size
+    for make in (lambda: MultipleModelParticleFilter(particles=100, chunk_runs=chunk_runs, workers=workers),
+                 lambda: BearingsEKF()):
+        quiet = make().run(reports)
+        heard = _Heard()
+        with listening(heard):
+            loud = make().run(reports)
+        assert heard.starts == [(K - 1, "scan", make().name)]
+        assert heard.done == pytest.approx(K - 1)
+        np.testing.assert_array_equal(loud.state, quiet.state)
+        np.testing.assert_array_equal(loud.covariance, quiet.covariance)
+        for name in quiet.extras:
+            np.testing.assert_array_equal(loud.extras[name], quiet.extras[name])
+
+
 def test_filters_follow_the_target_on_a_short_clean_run():
     truth, reports = _reports(runs=4, duration=600.0)
     for estimator in (MultipleModelParticleFilter(particles=500, max_acceleration=0.001, target_sigma=0.005),

@@ -1,0 +1,55 @@
+"""How far a long computation got, told to whoever listens, without knowing who that is.
+
+A filter (or any long loop) takes ``progress = current()`` on the thread that called it, then says
+``progress.start(total, unit, label)`` once it knows how much work there is and
+``progress.advance(amount)`` as it goes, from any thread (a listener is thread-safe). With nobody
+listening (a notebook, a test, a filter used on its own) ``current()`` is a no-op object. The
+pipeline listens while it runs a stage (``listening(listener)``; pipeline.progress shows a bar or
+log lines). Nothing flows back: telling progress never changes what is computed.
+
+Its own module, not filters.base: a filter's code fingerprint (its stage cache key) covers the
+modules it imports, so only the filters that report progress depend on this one.
+"""
+
+from __future__ import annotations
+
+from contextlib import contextmanager
+from contextvars import ContextVar
+from typing import Iterator, Protocol
+
+
+class Progress(Protocol):
+    def start(self, total: float, unit: str = "step", label: str | None = None) -> None:
+        """``total`` units of work follow (e.g. 360 scans), named ``unit``; ``label`` says whose (a
+        filter's name). A second start begins a new piece of work."""
+
+    def advance(self, amount: float = 1.0) -> None:
+        """``amount`` more units done (fractions allowed: a chunk of the runs through one scan)."""
+
+
+class _Silent:
+    def start(self, total: float, unit: str = "step", label: str | None = None) -> None:
+        pass
+
+    def advance(self, amount: float = 1.0) -> None:
+        pass
+
+
+SILENT: Progress = _Silent()
+_listener: ContextVar[Progress] = ContextVar("filters.progress.listener", default=SILENT)
+
+
+def current() -> Progress:
+    """Whoever listens in this context (SILENT if nobody). Threads a computation starts do not
+    inherit it: take it before starting them and hand it over."""
+    return _listener.get()
+
+
+@contextmanager
+def listening(listener: Progress) -> Iterator[Progress]:
+    """``listener`` hears what the code run inside the block reports."""
+    token = _listener.set(listener)
+    try:
+        yield listener
+    finally:
+        _listener.reset(token)
