@@ -11,7 +11,9 @@ from __future__ import annotations
 import datetime as dt
 import json
 import logging
+import math
 import resource
+import sys
 import time
 import traceback
 import warnings
@@ -34,6 +36,7 @@ from pipeline.faults import FaultChecks, fault_summary
 from pipeline.memory import check as check_memory
 from pipeline.metrics import unit_of, with_breakdown
 from pipeline.process import identity as process_identity
+from pipeline.progress import Reporter, choose_mode
 from pipeline.tables import ReportContext, format_summary
 from pipeline.stages import declare as declare_stages
 from pipeline.track import SingleTargetStudy, flags_from_table
@@ -228,20 +231,25 @@ def job_context(cfg: DictConfig, hydra_cfg: DictConfig) -> RunContext:
 
 
 class _Stages:
-    def __init__(self, cache: StageCache, ctx: RunContext, provenance: dict[str, str], link: bool = False) -> None:
+    def __init__(self, cache: StageCache, ctx: RunContext, provenance: dict[str, str], link: bool = False,
+                 progress: Reporter | None = None) -> None:
         self.cache = cache
         self.link = link              # cache.publish=link: hard links into the cache instead of copies
         self.ctx = ctx
         self.provenance = provenance
+        self.progress = progress or Reporter("off")
 
     def run(self, stage: str, key: str, table: str, compute: Callable[[], Any],
             to_frame: Callable[[Any], tuple[pl.DataFrame, dict]], publish_as: Path, describe: str,
             from_frame: Callable[[pl.DataFrame, dict[str, str]], Any],
-            chunks: Callable[[], Any] | None = None) -> tuple[Any, bool, pl.DataFrame]:
+            chunks: Callable[[], Any] | None = None, label: str | None = None,
+            units: int = 1) -> tuple[Any, bool, pl.DataFrame]:
         """(the stage's value as the table holds it, whether it came from the cache, the table).
-        With ``chunks`` (an iterator of (frame, metadata) per chunk of runs), a computed table is
-        streamed to the cache one chunk at a time, then read back whole."""
+        With ``chunks`` (an iterator of (frame, metadata) per chunk of runs, ``units`` of them), a
+        computed table is streamed to the cache one chunk at a time, then read back whole. A computed
+        stage shows its progress as ``label`` (pipeline.progress)."""
         started = time.perf_counter()
+        label = label or f"[{stage}] {describe}"
         destination = inside(self.ctx.run_dir, publish_as)
         hit = self.cache.load(stage, key, table, publish_to=None if self.link else destination)
         if hit is not None:
@@ -253,9 +261,11 @@ class _Stages:
             stream = self.cache.stream(stage, key)
             try:
                 meta: dict = {}
-                for part, meta in chunks():
-                    stream.write(part)
-                    del part                       # one chunk in memory at a time
+                with self.progress.task(label, units, "chunk") as task:
+                    for part, meta in chunks():
+                        stream.write(part)
+                        del part                       # one chunk in memory at a time
+                        task.unit_done()
                 path = stream.finish({**meta, **self.provenance})
             except BaseException:
                 stream.abort()
@@ -265,14 +275,16 @@ class _Stages:
             value = from_frame(df, stored)
             log.info("[%s] computed %s in chunks of runs, %.2f s (written as it went)", stage, describe, computed)
         else:
-            value = compute()
-            computed = time.perf_counter() - started
-            df, meta = to_frame(value)
-            value = None                           # the table holds it now: one copy in memory, not two
-            path = self.cache.store(stage, key, df, {**meta, **self.provenance})
-            # later stages see exactly what the table holds (e.g. the float32 compact covariance),
-            # so a recomputed stage and a cached one give bit-identical metrics
-            value = from_frame(df, {k: str(v) for k, v in meta.items()})
+            with self.progress.task(label) as task:
+                value = compute()
+                computed = time.perf_counter() - started
+                task.set_note("writing its table")
+                df, meta = to_frame(value)
+                value = None                           # the table holds it now: one copy in memory, not two
+                path = self.cache.store(stage, key, df, {**meta, **self.provenance})
+                # later stages see exactly what the table holds (e.g. the float32 compact covariance),
+                # so a recomputed stage and a cached one give bit-identical metrics
+                value = from_frame(df, {k: str(v) for k, v in meta.items()})
             log.info("[%s] computed %s, %.2f s (+%.2f s to write the cache)", stage, describe, computed,
                      time.perf_counter() - started - computed)
         if hit is None or self.link:
@@ -348,7 +360,9 @@ def run_experiment(cfg: DictConfig, ctx: RunContext) -> RunOutcome:
     study, sensor, estimators = prepared.study, prepared.sensor, prepared.estimators
     cache = StageCache(ctx.artifacts / "cache", enabled=bool(cfg.cache.enabled))
     provenance = {"mtt.experiment": experiment, "mtt.config_hash": config_hash, "mtt.package_version": package_version()}
-    stages = _Stages(cache, ctx, provenance, link=cfg.cache.get("publish", "copy") == "link")
+    # a bar on a terminal, plain lines in a pipe or a sweep, nothing for a stage under 2 s
+    progress = Reporter(choose_mode(sys.stderr, multirun=ctx.job_num is not None))
+    stages = _Stages(cache, ctx, provenance, link=cfg.cache.get("publish", "copy") == "link", progress=progress)
 
     # the declared stages (pipeline.stages), run in order through the cache: each key covers its
     # config subtree, its inputs' keys and the import closure of the code that makes its table
@@ -357,13 +371,16 @@ def run_experiment(cfg: DictConfig, ctx: RunContext) -> RunOutcome:
     flags: dict[str, Any] = {}             # each track table's fault column (R, K); the tables themselves are let go
     cached: dict[str, bool] = {}
     declared, track_input = declare_stages(cfg, resolved, prepared, build_fault_checks(cfg))
+    chunk_runs = cfg.mc.get("chunk_runs")
     for stage in declared:
         inputs = {name: outputs[name] for name in stage.inputs}
         key = stage_key(stage.cache, stage.config, tuple(keys[name] for name in stage.inputs), stage.producers)
         outputs[stage.output], cached[stage.output], table = stages.run(
             stage.cache, key, stage.table, lambda s=stage, i=inputs: s.compute(**i),
             lambda value, s=stage, i=inputs: s.to_frame(value, i), stage.publish_as, stage.describe(inputs),
-            stage.from_frame, None if stage.chunks is None else lambda s=stage, i=inputs: s.chunks(**i))
+            stage.from_frame, None if stage.chunks is None else lambda s=stage, i=inputs: s.chunks(**i),
+            _progress_label(stage, inputs, prepared),
+            math.ceil(runs / chunk_runs) if stage.chunks is not None else 1)
         keys[stage.output] = key
         if stage.cache == "track":
             flags[stage.output] = flags_from_table(table, runs, outputs["truth"].time.size)
@@ -393,7 +410,8 @@ def run_experiment(cfg: DictConfig, ctx: RunContext) -> RunOutcome:
                         ", ".join(f"{name[len('fault_runs_'):]}: {count}" for name, count in faults[v].items()
                                   if name.startswith("fault_runs_") and count), v)
     started = time.perf_counter()
-    evaluated = evaluate_stage(cfg, study, sensor, truth, estimates, display, faults, runs)
+    with progress.task(f"[evaluate] {len(variants)} variants x {K} steps"):   # the bootstrap reports its metrics
+        evaluated = evaluate_stage(cfg, study, sensor, truth, estimates, display, faults, runs)
     metrics, summary = evaluated.metrics, evaluated.summary
     summary = summary.with_columns(pl.col("variant_key").replace_strict(
         {v: cached[f"estimates/{v}"] for v in variants}, return_dtype=pl.Boolean).alias("estimates_from_cache"))
@@ -416,11 +434,14 @@ def run_experiment(cfg: DictConfig, ctx: RunContext) -> RunOutcome:
     if cfg.record.enabled:
         started = time.perf_counter()
         record_runs = list(cfg.record.runs) if not isinstance(cfg.record.runs, int) else [cfg.record.runs]
-        study.record(ctx.run_dir / "recording.rrd", RecordingInputs(
-            experiment=experiment, truth=truth, detections=detections, estimates=estimates, display_names=display,
-            metrics=metrics, record_runs=record_runs, sensor=sensor, estimators=estimators,
-            track_input=track_input(truth, detections),     # the filters' view (made once), for re-runs
-            seed=seed, config_text=OmegaConf.to_yaml(cfg, resolve=True), description=str(cfg.get("description", ""))))
+        # no count measures a recording: it shows its time so far (and a filter re-run for it, its scans)
+        with progress.task("[record] recording.rrd", units=None):
+            study.record(ctx.run_dir / "recording.rrd", RecordingInputs(
+                experiment=experiment, truth=truth, detections=detections, estimates=estimates, display_names=display,
+                metrics=metrics, record_runs=record_runs, sensor=sensor, estimators=estimators,
+                track_input=track_input(truth, detections),     # the filters' view (made once), for re-runs
+                seed=seed, config_text=OmegaConf.to_yaml(cfg, resolve=True),
+                description=str(cfg.get("description", ""))))
         log.info("[record] recording.rrd (runs %s), %.2f s", record_runs, time.perf_counter() - started)
 
     text = format_summary(summary, experiment, runs, evaluated.comparisons)
@@ -491,6 +512,16 @@ def _evaluate(cfg: DictConfig, study: Study, sensor: Any, truth: Any, estimates:
     # the tidy columns metric (the quantity), component, sensor, target (pipeline.metrics.breakdown)
     return Evaluated(with_breakdown(metrics_frame(truth.time, per_variant, runs)), with_breakdown(summary),
                      with_breakdown(comparisons), with_breakdown(per_run), resamples)
+
+
+def _progress_label(stage: Any, inputs: dict[str, Any], prepared: Prepared) -> str:
+    """What a stage's progress says it is: ``[track] AMMPF, variant 1/3``, ``[scenario] 100 runs``."""
+    if stage.cache == "track" and stage.output.startswith("estimates/"):
+        key = stage.output[len("estimates/"):]
+        if key in prepared.variants:
+            name = getattr(prepared.estimators[key], "name", key)
+            return f"[track] {name}, variant {prepared.variants.index(key) + 1}/{len(prepared.variants)}"
+    return f"[{stage.cache}] {stage.describe(inputs)}"
 
 
 def build_fault_checks(cfg: DictConfig) -> FaultChecks:

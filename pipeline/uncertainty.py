@@ -38,6 +38,9 @@ from typing import Literal, Mapping, Sequence
 
 import numpy as np
 
+from filters.progress import SILENT, Progress
+from filters.progress import current as current_progress
+
 ACROSS_RUNS = ("rms", "mean", "sum", "median")
 OVER_STEPS = ("mean", "sum", "max", "pool")
 CONFIDENCE = 0.95
@@ -486,9 +489,11 @@ def bootstrap_values(groups: Sequence[tuple[RunValues, Sequence[WindowStatistic]
     for g, (rv, _) in enumerate(groups):
         sharing.setdefault(id(rv.values), []).append(g)
 
-    def evaluate(all_counts: np.ndarray, all_index: np.ndarray) -> list[np.ndarray]:
+    def evaluate(all_counts: np.ndarray, all_index: np.ndarray, progress: Progress = SILENT) -> list[np.ndarray]:
         """Every statistic's value on each resample (rows of counts / index): array by array, batch by
-        batch, the metrics sharing an array reading one product of counts and values."""
+        batch, the metrics sharing an array reading one product of counts and values; ``progress``
+        hears of each array done."""
+        progress.start(len(sharing), "bootstrap, metric", None)
         parts: list[list[list[np.ndarray]]] = [[[] for _ in statistics] for _, statistics in groups]
         totals = ResampledTotals(columns_of)
         for key, members in sharing.items():
@@ -506,11 +511,14 @@ def bootstrap_values(groups: Sequence[tuple[RunValues, Sequence[WindowStatistic]
                     per_step = rv.resampled_per_step(counts_b, index_b, needed, totals) if needed.size else None
                     for part, statistic in zip(parts[g], statistics):
                         part.append(statistic.resampled(per_step, needed, counts_b))
+            progress.advance()
         return [np.concatenate(part) for group in parts for part in group]
 
     with warnings.catch_warnings(), np.errstate(invalid="ignore", divide="ignore"):
         warnings.simplefilter("ignore", RuntimeWarning)
-        distribution = np.asarray(combine(evaluate(counts, drawn)), dtype=float).reshape(outputs, resamples)
+        # the resamples are the work (the jackknife's and the point's rows are few): their progress
+        distribution = np.asarray(combine(evaluate(counts, drawn, current_progress())),
+                                  dtype=float).reshape(outputs, resamples)
         jackknife = np.asarray(combine(evaluate(jack_counts, left_out)), dtype=float).reshape(outputs, runs)
         point = np.asarray(combine(evaluate(np.ones((1, runs)), np.arange(runs)[None, :])), dtype=float).reshape(outputs)
 

@@ -1,0 +1,174 @@
+"""Progress of long stages (pipeline.progress): plain lines on a fake clock, the bar, the mode chosen
+for a terminal, a pipe and a sweep, and what a real run prints (issue 19)."""
+
+from __future__ import annotations
+
+import io
+import os
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+
+from filters.progress import SILENT, current
+from pipeline.progress import DELAY, INTERVAL, Reporter, Task, choose_mode, duration
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+class Clock:
+    """Seconds that pass only when the test says so."""
+
+    def __init__(self) -> None:
+        self.now = 1000.0
+
+    def __call__(self) -> float:
+        return self.now
+
+    def at(self, seconds: float) -> "Clock":
+        self.now = 1000.0 + seconds
+        return self
+
+
+def lines_task(clock: Clock, label: str = "[track] AMMPF, variant 1/3", units: int | None = 1) -> tuple[Task, list[str]]:
+    out: list[str] = []
+    return Task(label, units, mode="lines", clock=clock, emit=out.append), out
+
+
+def test_plain_lines_come_after_the_delay_then_every_interval_with_the_share_and_eta():
+    clock = Clock()
+    task, out = lines_task(clock)
+    task.start(360, "scan", "AMMPF")
+    for second, scans in ((0.5, 30), (1.9, 60)):           # within DELAY: nothing, however often it reports
+        clock.at(second)
+        task.advance(scans)
+    assert out == []
+    clock.at(3.0)
+    task.advance(30)                                         # 120 of 360 in 3 s: 6 s to go
+    assert out == ["[track] AMMPF, variant 1/3: scan 120/360, 33 %, ETA 6 s"]
+    for second in (4.0, 8.0, 3.0 + INTERVAL - 0.1):          # until INTERVAL has passed: no new line
+        clock.at(second)
+        task.advance(10)
+    assert len(out) == 1
+    clock.at(3.0 + INTERVAL)
+    task.advance(120)                                        # 270 of 360 in 13 s
+    assert out[1] == "[track] AMMPF, variant 1/3: scan 270/360, 75 %, ETA 4 s"
+    assert DELAY == 2.0 and INTERVAL == 10.0
+
+
+def test_a_stage_within_the_delay_prints_nothing():
+    clock = Clock()
+    task, out = lines_task(clock)
+    task.start(360, "scan", "AMMPF")
+    for k in range(360):
+        clock.at(k * (DELAY - 0.01) / 360)
+        task.advance()
+    task.tick()
+    task.close()
+    clock.at(100.0)
+    task.tick()                                              # closed: nothing after the stage either
+    assert out == []
+
+
+def test_chunks_of_runs_and_the_filter_inside_each_give_the_share_of_the_stage():
+    clock = Clock()
+    task, out = lines_task(clock, units=4)
+    task.start(360, "scan", "AMMPF")
+    clock.at(4.0)
+    task.advance(360)                                        # chunk 1 of 4 in 4 s
+    assert out == ["[track] AMMPF, variant 1/3: chunk 1/4, scan 360/360, 25 %, ETA 12 s"]
+    task.unit_done()
+    task.start(360, "scan", "AMMPF")
+    clock.at(4.0 + INTERVAL)
+    task.advance(180)                                        # 1.5 of 4 chunks in 14 s
+    assert out[1] == "[track] AMMPF, variant 1/3: chunk 2/4, scan 180/360, 38 %, ETA 23 s"
+
+
+def test_a_stage_nothing_measures_says_how_long_it_has_run():
+    clock = Clock()
+    task, out = lines_task(clock, "[record] recording.rrd", units=None)
+    clock.at(DELAY)
+    task.tick()
+    task.start(360, "scan", "AMMPF")                         # a filter re-run for the recording
+    clock.at(DELAY + INTERVAL)
+    task.advance(90)
+    assert out == ["[record] recording.rrd: 2 s so far", "[record] recording.rrd: AMMPF scan 90/360, 12 s so far"]
+    clock = Clock()
+    task, out = lines_task(clock, "[evaluate] 3 variants x 361 steps")
+    clock.at(5.0)
+    task.set_note("writing its table")
+    assert out == ["[evaluate] 3 variants x 361 steps: writing its table, 5 s so far"]
+
+
+def test_the_bar_is_drawn_after_the_delay_and_cleared_at_the_end():
+    clock, stream = Clock(), io.StringIO()
+    task = Task("[track] AMMPF, variant 1/3", mode="bar", clock=clock, bar_stream=stream)
+    task.start(360, "scan", "AMMPF")
+    clock.at(1.0)
+    task.advance(100)
+    assert stream.getvalue() == ""
+    clock.at(3.0)
+    task.advance(20)
+    drawn = stream.getvalue()
+    assert "[track] AMMPF, variant 1/3:  33%|" in drawn and "| scan 120/360, ETA 6 s" in drawn
+    task.close()                                             # blanked: the stage's own log line follows
+    assert re.fullmatch(r"\r +\r", stream.getvalue()[len(drawn):])
+
+
+def test_reporter_tasks_listen_to_what_runs_inside_and_off_prints_nothing():
+    clock, out = Clock(), []
+    reporter = Reporter("lines", clock=clock, emit=out.append, heartbeat=None)
+    assert current() is SILENT
+    with reporter.task("[track] EKF, variant 3/3") as task:
+        assert current() is task
+        current().start(10, "scan", "EKF")
+        clock.at(DELAY)
+        current().advance(5)
+    assert current() is SILENT
+    assert out == ["[track] EKF, variant 3/3: scan 5/10, 50 %, ETA 2 s"]
+    quiet: list[str] = []
+    with Reporter("off", clock=clock, emit=quiet.append).task("[evaluate] x") as task:
+        task.start(10)
+        clock.at(1000.0)
+        task.advance(5)
+    assert quiet == []
+
+
+class _Terminal(io.StringIO):
+    def isatty(self) -> bool:
+        return True
+
+
+def test_the_mode_a_bar_on_a_terminal_lines_in_a_pipe_or_a_sweep():
+    assert choose_mode(_Terminal(), multirun=False, environ={}) == "bar"
+    assert choose_mode(io.StringIO(), multirun=False, environ={}) == "lines"
+    assert choose_mode(_Terminal(), multirun=True, environ={}) == "lines"       # jobs share the terminal
+    assert choose_mode(io.StringIO(), multirun=False, environ={"MTT_PROGRESS": "bar"}) == "bar"
+    assert choose_mode(_Terminal(), multirun=False, environ={"MTT_PROGRESS": "off"}) == "off"
+    assert choose_mode(_Terminal(), multirun=False, environ={"MTT_PROGRESS": "loud"}) == "bar"
+    assert [duration(s) for s in (0.4, 28, 99.6, 245, 3725)] == ["0 s", "28 s", "1 min 40 s", "4 min 05 s", "1 h 02 min"]
+
+
+def _env() -> dict[str, str]:
+    env = {k: v for k, v in os.environ.items() if k != "MTT_PROGRESS"}
+    return {**env, "HYDRA_FULL_ERROR": "0", "PYTHONPATH": str(ROOT)}
+
+
+LOG_LINE = re.compile(r"^\[\d\d:\d\d:\d\d\] ")
+
+
+def test_a_real_run_in_a_pipe_prints_log_lines_and_no_bar(tmp_path):
+    """stderr a pipe: whatever progress there is comes as plain log lines, never a bar (no carriage
+    returns, no bar characters); the summary table on stdout is as before."""
+    proc = subprocess.run(
+        [sys.executable, "-m", "pipeline", f"paths.artifacts={tmp_path}", "experiment=sonobuoy_case2", "mc.runs=2",
+         "++scenario.duration=300", "++target_model.particles=300", "record.enabled=false"],
+        cwd=tmp_path, capture_output=True, text=True, timeout=300, env=_env())
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "\r" not in proc.stderr and "%|" not in proc.stderr and "\x1b[" not in proc.stderr
+    assert all(LOG_LINE.match(line) for line in proc.stderr.splitlines()), proc.stderr
+    for line in proc.stderr.splitlines():                    # a progress line, if the machine was slow enough
+        if re.search(r"\] \[(track|evaluate|record)\] .*: .*(ETA|so far)", line):
+            assert re.search(r"(\d+ %, ETA|so far)", line), line
+    assert proc.stdout.startswith("sonobuoy_case2: 2 Monte Carlo runs")
