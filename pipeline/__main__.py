@@ -39,7 +39,8 @@ def main(cfg: DictConfig) -> float | None:
             _fail(ctx, cfg, str(exc), None)               # the sweep lists the job; a started run says why
         else:
             _remove_unused_run_folder(ctx.run_dir, ctx.artifacts)   # refused before any work: nothing is written
-        print(f"error: {exc}", file=sys.stderr)
+        # a sweep's jobs share the terminal: say which job (as its log lines do)
+        print(f"{f'[job {hc.job.num}] ' if multirun else ''}error: {exc}", file=sys.stderr)
         if not multirun:
             sys.exit(2)
         return None

@@ -444,7 +444,7 @@ def run_experiment(cfg: DictConfig, ctx: RunContext) -> RunOutcome:
                 description=str(cfg.get("description", ""))))
         log.info("[record] recording.rrd (runs %s), %.2f s", record_runs, time.perf_counter() - started)
 
-    text = format_summary(summary, experiment, runs, evaluated.comparisons)
+    text = job_header(format_summary(summary, experiment, runs, evaluated.comparisons), ctx)
     if report_tables:
         report_ctx = ReportContext(experiment, runs, display, metrics, summary)
         text += "".join(f"\n\n{table.render(report_ctx)}" for table in report_tables.values())
@@ -452,6 +452,16 @@ def run_experiment(cfg: DictConfig, ctx: RunContext) -> RunOutcome:
     write_status(ctx, experiment, "ok", config_hash=config_hash, runs=runs)
     log.info("done in %.2f s", time.perf_counter() - total_started)
     return RunOutcome(summary, metrics, text, evaluated.comparisons)
+
+
+def job_header(text: str, ctx: RunContext) -> str:
+    """A sweep job's printed summary headed by its job number and overrides (``[job 3] ao_vsimm_s1: 5
+    Monte Carlo runs; overrides: ...``): the jobs' tables reach one terminal, each must say whose it
+    is. A single run's is left as it is."""
+    if ctx.job_num is None:
+        return text
+    first, newline, rest = text.partition("\n")
+    return f"[job {ctx.job_num}] {first}; overrides: {' '.join(ctx.overrides) or '(none)'}{newline}{rest}"
 
 
 @dataclass(frozen=True)

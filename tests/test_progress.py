@@ -1,5 +1,5 @@
 """Progress of long stages (pipeline.progress): plain lines on a fake clock, the bar, the mode chosen
-for a terminal, a pipe and a sweep, and what a real run prints (issue 19)."""
+for a terminal, a pipe and a sweep, and what a real run and a real sweep print (issue 19)."""
 
 from __future__ import annotations
 
@@ -10,6 +10,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
 
 from filters.progress import SILENT, current
 from pipeline.progress import DELAY, INTERVAL, Reporter, Task, choose_mode, duration
@@ -168,7 +169,29 @@ def test_a_real_run_in_a_pipe_prints_log_lines_and_no_bar(tmp_path):
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "\r" not in proc.stderr and "%|" not in proc.stderr and "\x1b[" not in proc.stderr
     assert all(LOG_LINE.match(line) for line in proc.stderr.splitlines()), proc.stderr
+    assert "[job" not in proc.stderr                        # a single run's lines name no job
     for line in proc.stderr.splitlines():                    # a progress line, if the machine was slow enough
         if re.search(r"\] \[(track|evaluate|record)\] .*: .*(ETA|so far)", line):
             assert re.search(r"(\d+ %, ETA|so far)", line), line
     assert proc.stdout.startswith("sonobuoy_case2: 2 Monte Carlo runs")
+
+
+@pytest.mark.parametrize("launcher", ["joblib", "isolated"])
+def test_a_sweeps_lines_and_tables_name_their_job(tmp_path, launcher):
+    """Two jobs at once on one terminal: every log line of a job carries "[job N]", and each job's
+    printed summary is headed by its job number and its overrides."""
+    proc = subprocess.run(
+        [sys.executable, "-m", "pipeline", "-m", f"paths.artifacts={tmp_path}", "mc.runs=2", "scenario.steps=30",
+         "record.enabled=false", "variants=[fsimm]", "mc.seed=1,2", f"hydra/launcher={launcher}",
+         "hydra.launcher.n_jobs=2"],
+        cwd=tmp_path, capture_output=True, text=True, timeout=300, env=_env())
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    job_lines = [line for line in proc.stderr.splitlines() if LOG_LINE.match(line)]
+    assert job_lines and all(re.match(r"^\[\d\d:\d\d:\d\d\] \[job [01]\] ", line) for line in job_lines), job_lines
+    for job in (0, 1):
+        assert any(line.startswith(f"[{line[1:9]}] [job {job}] experiment ao_vsimm_s1") for line in job_lines)
+        (header,) = [line for line in proc.stdout.splitlines() if line.startswith(f"[job {job}] ao_vsimm_s1: ")]
+        assert header.startswith(f"[job {job}] ao_vsimm_s1: 2 Monte Carlo runs; overrides: paths.artifacts={tmp_path} "
+                                 f"mc.runs=2 scenario.steps=30 ") and header.endswith(f" mc.seed={job + 1}"), header
+        (report,) = tmp_path.glob(f"multirun/*/{job}/report.txt")
+        assert report.read_text().startswith(header + "\n")
