@@ -45,6 +45,7 @@ from typing import Sequence
 import numpy as np
 
 from filters.kalman import einsum, inverse_2x2, rows_times, shared_times, times_shared
+from filters.progress import counted
 
 STATE_NAMES = ("x", "y", "vx", "vy")
 BIAS_NAMES = ("range_offset", "azimuth_offset", "range_scale", "azimuth_scale")
@@ -478,7 +479,7 @@ class LocalTracking:
         out_Pc = np.full((R, K, Tsel, 4, 4), np.nan)
         out_nis = np.full((R, K), np.nan)
         out_nis_dof = np.zeros((R, K))
-        for k in range(K):
+        for k in counted(range(K), "scan", self.name):
             i, t = int(reports.sensor[k]), float(reports.time[k])
             position = reports.sensor_position[i]
             z_polar = reports.z[:, k]

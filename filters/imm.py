@@ -26,6 +26,7 @@ import numpy as np
 from filters.base import MeasurementSeries, TrackEstimate
 from filters.kalman import einsum, predict, rows_times, shared_times, times_shared, update
 from filters.models import AccelerationModelSet, two_point_initialisation, two_point_start
+from filters.progress import counted
 
 
 @dataclass(frozen=True)
@@ -359,7 +360,7 @@ class _IMMBase:
         s = self._start(measurements)
         groups = GroupState.start(R, self._initial_groups())
         rows = np.arange(R)[:, None]
-        for k in range(1, K):
+        for k in counted(range(1, K), "scan", self.name):
             if k > 1:
                 noise_k = noise[:, k] if noise.ndim == 4 else noise
                 s, groups, evaluated[:, k] = self._step(s, groups, z[:, k], noise_k, detected[:, k])

@@ -55,6 +55,7 @@ from filters.coordinates import (converted_covariance, line_of_sight_angles, los
                                  polar_to_cartesian)
 from filters.kalman import einsum, rows_times
 from filters.models import singer_input_gain, singer_process_noise, singer_transition
+from filters.progress import counted
 
 # (axis, kinematic) -> inertial output order (x, y, z, vx, vy, vz, ax, ay, az)
 _KIN_MAJOR = [a * 3 + kin for kin in range(3) for a in range(3)]
@@ -211,7 +212,7 @@ class LOSMIE(_MIEBase):
         frames[:, 1], x_hist[:, 1], pvv_hist[:, 1], r_hist[:, 1] = T, x, P[:, :, 1, 1], Rd
         self._output(out_x, out_P, level_out, 1, x, P, T, u)
 
-        for k in range(2, K):
+        for k in counted(range(2, K), "scan", self.name):
             # eqs 3-4 (+ G u, as in eq 17): propagate in frame k-1, each axis on its own
             x = x @ F.T + u[:, :, None] * G
             P = F @ P @ F.T + Q
@@ -535,7 +536,7 @@ class InertialMIE(_MIEBase):
         sens_v_hist = np.zeros((R, K, 3, 3))
         x_hist[:, 1], pvv_hist[:, 1] = x, P[:, vel][:, :, vel]
         self._output(out_x, out_P, level_out, 1, x, P, u)
-        for k in range(2, K):
+        for k in counted(range(2, K), "scan", self.name):
             x = rows_times(x, F9.T) + rows_times(u, G9.T)
             P = F9 @ P @ F9.T + Q9
             S = P[:, pos][:, :, pos] + RI[:, k]

@@ -69,6 +69,7 @@ import numpy as np
 from filters.base import TrackEstimate
 from filters.kalman import einsum, rows_times, shared_times, times_shared
 from filters.models import singer_process_noise, singer_transition
+from filters.progress import counted
 
 STATE_NAMES = ("x", "y", "vx", "vy", "ax", "ay")
 
@@ -367,7 +368,7 @@ class _SonarTracker:
         self._store(states, covariances, 0, x, P)
         steps = np.diff(reports.time)
         models = {}
-        for k in range(1, K):
+        for k in counted(range(1, K), "scan", self.name):
             dt = float(steps[k - 1])
             if dt not in models:
                 models[dt] = self._models(dt)

@@ -47,6 +47,7 @@ from filters.coordinates import converted_covariance, polar_to_cartesian
 from filters.mgekf import STATE_NAMES as SONAR_STATE_NAMES
 from filters.mgekf import SonarReports, cv_relative_model, nonlinear_update, relative_motion_model, sonar_start
 from filters.models import singer_process_noise, singer_transition, two_point_start
+from filters.progress import counted
 
 AXES = ("x", "y", "z")
 
@@ -136,7 +137,7 @@ class KalmanTracker:
         # two-point start at scan 1, with the two scans' own covariances
         x, P = two_point_start(z[:, 0], z[:, 1], noise[:, 0], noise[:, 1], dt, nk, self.sigma_m**2)
         states[:, 1], covariances[:, 1] = x, P
-        for k in range(2, K):
+        for k in counted(range(2, K), "scan", self.name):
             # per-run products only (filters.kalman): a 2-D x @ F' over the runs is one BLAS call whose
             # rounding depends on how many runs share it, and einsum's on its operands' strides
             x, P = predict(x, P, F, Q)
@@ -166,7 +167,7 @@ class KalmanTracker:
         nis = np.full((R, K), np.nan)
         states[:, 0], covariances[:, 0] = x, P
         models = {}
-        for k in range(1, K):
+        for k in counted(range(1, K), "scan", self.name):
             dt = float(reports.time[k] - reports.time[k - 1])
             if dt not in models:
                 models[dt] = (cv_relative_model(dt, self.acceleration_density) if n == 4

@@ -78,6 +78,7 @@ from filters.base import MeasurementSeries, TrackEstimate
 from filters.imm import ModeSet, combine, combined_prediction_nis
 from filters.kalman import einsum, update
 from filters.models import two_point_start
+from filters.progress import counted
 from filters.tracker import cartesian_measurements, to_layout
 
 MODES = ("CV", "CT")
@@ -274,7 +275,7 @@ class CVCTIMM:
         mu = np.broadcast_to(self.initial_mode_probabilities, (R, 2)).copy()
         state[:, 1], covariance[:, 1], mode_probabilities[:, 1] = x[:, 0], P[:, 0], mu
         modes = np.broadcast_to(np.arange(2), (R, 2))
-        for k in range(2, K):
+        for k in counted(range(2, K), "scan", self.name):
             dt = float(dts[k - 1])
             x_mix, P_mix, predicted = self.mix(x, P, mu, dt)                  # steps 1-2
             x_pred, P_pred = self.predict(x_mix, P_mix, dt)                   # step 3

@@ -96,8 +96,7 @@ class Task:
         self.note: str | None = None
         self.reference: tuple[float, float] | None = None     # (time, fraction) the rate is measured from
         self.lines = 0                                         # plain lines emitted
-        self._last_line: float | None = None
-        self._last_draw = float("-inf")
+        self._due = self.started + DELAY                       # when tick has something to show
         self._bar: Any = None
         self._closed = False
         self._lock = threading.RLock()
@@ -116,7 +115,8 @@ class Task:
     def advance(self, amount: float = 1.0) -> None:
         with self._lock:
             self.inner_done += amount
-        self.tick()
+        if self.clock() >= self._due:           # called every scan: only a clock read until output is due
+            self.tick()
 
     # ---- the runner's side ----------------------------------------------------------------------
     def unit_done(self) -> None:
@@ -172,18 +172,17 @@ class Task:
         if self.mode == "off" or self._closed:
             return
         now = self.clock()
-        if now - self.started < DELAY:
+        if now < self._due:
             return
         with self._lock:
-            if self._closed:
+            if self._closed or now < self._due:
                 return
             if self.mode == "lines":
-                if self._last_line is None or now - self._last_line >= INTERVAL:
-                    self._last_line = now
-                    self.lines += 1
-                    self.emit(self.describe(now))
-            elif now - self._last_draw >= REFRESH:
-                self._last_draw = now
+                self._due = now + INTERVAL
+                self.lines += 1
+                self.emit(self.describe(now))
+            else:
+                self._due = now + REFRESH
                 self._draw(now)
 
     def _draw(self, now: float) -> None:

@@ -195,3 +195,85 @@ def test_a_sweeps_lines_and_tables_name_their_job(tmp_path, launcher):
                                  f"mc.runs=2 scenario.steps=30 ") and header.endswith(f" mc.seed={job + 1}"), header
         (report,) = tmp_path.glob(f"multirun/*/{job}/report.txt")
         assert report.read_text().startswith(header + "\n")
+
+
+# ---- the filters' side: every study's filters report their scans, and listening changes nothing ---
+class Heard:
+    """A filters.progress listener keeping what it hears (thread-safe: particle chunks report in threads)."""
+
+    def __init__(self) -> None:
+        import threading
+        self.lock, self.starts, self.done = threading.Lock(), [], []
+
+    def start(self, total, unit="step", label=None):
+        with self.lock:
+            self.starts.append((total, unit, label))
+            self.done.append(0.0)
+
+    def advance(self, amount=1.0):
+        with self.lock:
+            self.done[-1] += amount
+
+
+@pytest.mark.parametrize("length", [0, 1, 999, 1000, 2500, 10_001])
+def test_counted_is_the_range_and_its_steps_add_up(length):
+    from filters.progress import counted, listening
+    assert list(counted(range(3, 3 + length))) == list(range(3, 3 + length))     # nobody listening
+    heard = Heard()
+    with listening(heard):
+        steps = list(counted(range(3, 3 + length), "scan", "F"))
+    assert steps == list(range(3, 3 + length))
+    assert heard.starts == [(length, "scan", "F")] and heard.done == [length]
+
+
+def _assert_same(a, b, where: str) -> None:
+    """Two filter results equal to the bit, field by field (dataclasses, mappings, arrays), their
+    compute time aside."""
+    import dataclasses
+
+    import numpy as np
+    if dataclasses.is_dataclass(a):
+        for f in dataclasses.fields(a):
+            if f.name != "compute_seconds":
+                _assert_same(getattr(a, f.name), getattr(b, f.name), f"{where}.{f.name}")
+    elif isinstance(a, dict) or hasattr(a, "keys"):
+        assert list(a.keys()) == list(b.keys()), where
+        for name in a:
+            _assert_same(a[name], b[name], f"{where}[{name}]")
+    elif isinstance(a, (list, tuple)):
+        assert len(a) == len(b), where
+        for i, (x, y) in enumerate(zip(a, b)):
+            _assert_same(x, y, f"{where}[{i}]")
+    else:
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b), err_msg=where)
+
+
+def _smoke_cases() -> list:
+    from tests.conftest import smoke_experiments
+    return [pytest.param(name, overrides, id=name) for name, overrides in smoke_experiments()]
+
+
+@pytest.mark.parametrize("experiment, overrides", _smoke_cases())
+def test_every_studys_filters_report_their_scans_and_listening_changes_nothing(experiment, overrides):
+    """Each variant of each study (its smoke run, 3 runs) filtered with nobody listening and with a
+    listener: the same estimate to the bit; what it heard adds up to the scans it announced, named
+    by the filter."""
+    from hydra import compose, initialize_config_dir
+
+    from filters.progress import listening
+    from pipeline.runner import prepare
+    with initialize_config_dir(version_base="1.3", config_dir=str(ROOT / "conf")):
+        cfg = compose("config", overrides=[f"experiment={experiment}", "mc.runs=3", *overrides])
+    prepared = prepare(cfg)
+    truth = prepared.scenario.generate(3, 1)
+    detections = prepared.sensor.measure(truth, 1)
+    view = prepared.study.track_input(truth, detections, prepared.sensor, 1)
+    for key, estimator in prepared.estimators.items():
+        quiet = estimator.run(view)
+        heard = Heard()
+        with listening(heard):
+            loud = estimator.run(view)
+        _assert_same(quiet, loud, f"{experiment}: {key}")
+        assert heard.starts, f"{experiment}: {key} reported nothing"
+        assert all(label == estimator.name and unit == "scan" for _, unit, label in heard.starts), heard.starts
+        assert [pytest.approx(total) for total, _, _ in heard.starts] == heard.done, (key, heard.starts, heard.done)
