@@ -212,7 +212,8 @@ def test_damage_to_the_cache_does_not_reach_earlier_runs(tmp_path):
     import hashlib
     _, ctx = run_in_process(tmp_path, "a", "mc.runs=2", "scenario.steps=20")
     published = sorted(p for p in ctx.run_dir.rglob("*.parquet")
-                       if p.name not in ("summary.parquet", "metrics.parquet", "comparisons.parquet", "per_run.parquet"))
+                       if p.name not in ("summary.parquet", "metrics.parquet", "comparisons.parquet", "per_run.parquet",
+                                         "resamples.parquet"))
     before = {p: hashlib.sha256(p.read_bytes()).hexdigest() for p in published}
     assert len(published) == 5                         # truth, detections, three variants' estimates
     for cached in (tmp_path / "cache").rglob("*.parquet"):
