@@ -35,6 +35,10 @@ class MeasurementSeries:
     state_names : tuple of str or None
         The state layout the study evaluates (its truth's), for a filter that can write its estimate
         in any order (filters.tracker); None leaves the layout to the filter.
+    run_ids : (R,) int or None
+        Each run's index in the whole Monte Carlo (``select`` keeps them), for a filter that draws
+        random numbers per run (a particle filter): run r's draws then do not depend on how the runs
+        are chunked. None means 0..R-1.
     """
 
     time: np.ndarray
@@ -44,6 +48,7 @@ class MeasurementSeries:
     sensor: np.ndarray
     sensor_position: np.ndarray | None = None
     state_names: tuple[str, ...] | None = None
+    run_ids: np.ndarray | None = None
 
     @property
     def runs(self) -> int:
@@ -53,12 +58,16 @@ class MeasurementSeries:
     def scans(self) -> int:
         return self.z.shape[1]
 
+    def ids(self) -> np.ndarray:
+        """(R,) each run's index in the whole Monte Carlo."""
+        return np.arange(self.runs) if self.run_ids is None else np.asarray(self.run_ids, dtype=int)
+
     def select(self, runs: Sequence[int]) -> "MeasurementSeries":
         """The same scans for a subset of runs (a chunk of the Monte Carlo)."""
         index = np.asarray(runs, dtype=int)
         cov = self.noise_covariance
         return replace(self, z=self.z[index], detected=self.detected[index],
-                       noise_covariance=cov[index] if cov.ndim == 4 else cov)
+                       noise_covariance=cov[index] if cov.ndim == 4 else cov, run_ids=self.ids()[index])
 
 
 @dataclass(frozen=True)
@@ -110,11 +119,34 @@ MEASUREMENT_KINDS: dict[str, str] = {
 SERIES_KINDS = frozenset({"position_xy", "range_azimuth_elevation"})
 
 
-def accepted_kinds(filter_class: object) -> frozenset[str]:
+def accepted_kinds(filter_class: object, config: Mapping | None = None) -> frozenset[str]:
     """The measurement kinds a filter class takes: its ``accepts``, or, when it declares none, every
-    kind a MeasurementSeries carries (the Estimator protocol's ``run(MeasurementSeries)``)."""
+    kind a MeasurementSeries carries (the Estimator protocol's ``run(MeasurementSeries)``).
+
+    A class whose kinds follow from its configuration (pipeline.stonesoup.StoneSoupFilter: from its
+    measurement model's type) also answers ``accepts_config(config)`` for its variant's config node;
+    given ``config``, that answer counts (None from it: the class's ``accepts``)."""
+    hook = getattr(filter_class, "accepts_config", None)
+    if config is not None and callable(hook):
+        answer = hook(config)
+        if answer is not None:
+            return frozenset(answer)
     declared = getattr(filter_class, "accepts", None)
-    return SERIES_KINDS if declared is None else frozenset(declared)
+    return SERIES_KINDS if declared is None or not isinstance(declared, (set, frozenset, list, tuple)) \
+        else frozenset(declared)
+
+
+def produced_kind(sensor_class: object, config: Mapping | None = None) -> str | None:
+    """The measurement kind a sensor class produces: its ``produces``, or, for a class whose kind follows
+    from its configuration (pipeline.stonesoup.StoneSoupSensor: its measurement model), the answer of
+    ``produces_config(config)`` for its config node. None: the sensor declares nothing."""
+    hook = getattr(sensor_class, "produces_config", None)
+    if config is not None and callable(hook):
+        answer = hook(config)
+        if answer is not None:
+            return str(answer)
+    declared = getattr(sensor_class, "produces", None)
+    return declared if isinstance(declared, str) else None
 
 
 class Estimator(Protocol):

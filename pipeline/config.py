@@ -10,6 +10,7 @@ from __future__ import annotations
 import collections.abc
 import inspect
 import json
+import numbers
 import re
 import types
 import typing
@@ -250,18 +251,33 @@ def check_interpolations(cfg: DictConfig) -> None:
 
 
 PROJECT_PACKAGES = ("pipeline", "filters")
+# Stone Soup's components (the [stonesoup] extra, pipeline/stonesoup): models, filters' predictors and
+# updaters, initiators, resamplers, simulators and their types only build objects, so a config may name
+# them without listing anything. Its readers, writers (a YAMLWriter opens its file when built), plotters
+# and trackers stay out: list `stonesoup` in plugins.packages to allow every class of it.
+COMPONENT_PACKAGES = ("stonesoup.models", "stonesoup.predictor", "stonesoup.updater", "stonesoup.initiator",
+                      "stonesoup.resampler", "stonesoup.regulariser", "stonesoup.simulator", "stonesoup.types",
+                      "stonesoup.measures")
+# the optional extra whose install provides a package a _target_ may name (for the message when it is missing)
+EXTRA_OF_PACKAGE = {"stonesoup": "stonesoup"}
 DOTTED_NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_]*(\.[A-Za-z_][A-Za-z0-9_]*)+")
 
 
 def allowed_packages(cfg: DictConfig) -> tuple[str, ...]:
-    """This project's packages and those the user lists in ``plugins.packages``."""
+    """This project's packages, Stone Soup's component packages and those the user lists in
+    ``plugins.packages`` (a package, or a dotted sub-package such as ``stonesoup.tracker``)."""
     listed = OmegaConf.select(cfg, "plugins.packages", default=None)
     if listed is None:
-        return PROJECT_PACKAGES
-    if not isinstance(listed, ListConfig) or not all(isinstance(p, str) and p.isidentifier() for p in listed):
-        raise ConfigError(f"plugins.packages: {listed!r} is not allowed; it must be a list of top-level package "
-                          f"names whose classes a config may name with _target_, e.g. plugins.packages=[mytrack].")
-    return PROJECT_PACKAGES + tuple(str(p) for p in listed)
+        return PROJECT_PACKAGES + COMPONENT_PACKAGES
+    if not isinstance(listed, ListConfig) or not all(isinstance(p, str) and all(part.isidentifier() for part in
+                                                                                 p.split(".")) for p in listed):
+        raise ConfigError(f"plugins.packages: {listed!r} is not allowed; it must be a list of package names whose "
+                          f"classes a config may name with _target_, e.g. plugins.packages=[mytrack].")
+    return PROJECT_PACKAGES + COMPONENT_PACKAGES + tuple(str(p) for p in listed)
+
+
+def _inside(target: str, packages: tuple[str, ...]) -> bool:
+    return any(target == p or target.startswith(p + ".") for p in packages)
 
 
 def _target_nodes(node: Any, key: str) -> typing.Iterator[tuple[str, Any]]:
@@ -293,17 +309,25 @@ def check_targets(cfg: DictConfig) -> None:
     from hydra._internal.utils import _locate
 
     allowed = allowed_packages(cfg)
+    listed = list(allowed[len(PROJECT_PACKAGES) + len(COMPONENT_PACKAGES):])
     for key, target in _target_nodes(cfg, ""):
-        fix = (f"a _target_ must name a class of this project ({', '.join(PROJECT_PACKAGES)}) or of a package you "
-               f"list in plugins.packages (now {list(allowed[len(PROJECT_PACKAGES):])}), e.g. "
-               f"plugins.packages=[mytrack] for _target_: mytrack.cv.MyFilter")
+        fix = (f"a _target_ must name a class of this project ({', '.join(PROJECT_PACKAGES)}), of Stone Soup's "
+               f"components ({', '.join(COMPONENT_PACKAGES)}) or of a package you list in plugins.packages "
+               f"(now {listed}), e.g. plugins.packages=[mytrack] for _target_: mytrack.cv.MyFilter")
         if not isinstance(target, str) or not DOTTED_NAME.fullmatch(target):
             raise ConfigError(f"{key}: {target!r} is not allowed; {fix}.")
-        if target.split(".", 1)[0] not in allowed:
+        if not _inside(target, allowed):
             raise ConfigError(f"{key}: {target!r} is not allowed (nothing was imported); {fix}.")
         try:
             obj = _locate(target)
         except Exception as exc:  # noqa: BLE001 - any import failure: the user's name is wrong
+            top = target.split(".", 1)[0]
+            cause = exc.__cause__ if isinstance(exc.__cause__, ImportError) else exc
+            missing = getattr(cause, "name", None) or ""
+            if isinstance(exc, ImportError) and top in EXTRA_OF_PACKAGE and missing.split(".", 1)[0] == top:
+                extra = EXTRA_OF_PACKAGE[top]
+                raise ConfigError(f"{key}: {target!r} cannot be imported: {top} is not installed; it comes with the "
+                                  f"[{extra}] extra: pip install -e '.[{extra}]'.") from None
             raise ConfigError(f"{key}: {target!r} cannot be imported ({type(exc).__name__}: "
                               f"{str(exc).splitlines()[0] if str(exc) else ''}); it must name a class, e.g. "
                               f"filters.imm.FSIMM.") from None
@@ -312,8 +336,8 @@ def check_targets(cfg: DictConfig) -> None:
             raise ConfigError(f"{key}: {target!r} is a {type(obj).__name__}, not a class; {fix}.")
 
 
-def filter_classes_in_conf() -> dict[str, Any]:
-    """conf/filter/<name>.yaml -> the class its ``_target_`` names (following a file's defaults)."""
+def filter_nodes_in_conf() -> dict[str, tuple[Any, DictConfig]]:
+    """conf/filter/<name>.yaml -> (the class its ``_target_`` names, its node), following a file's defaults."""
     from hydra.utils import get_object
 
     folder = Path(__file__).resolve().parents[1] / "conf" / "filter"
@@ -326,10 +350,24 @@ def filter_classes_in_conf() -> dict[str, Any]:
                 break
             node, seen = OmegaConf.load(folder / f"{base}.yaml"), seen + 1
         try:
-            found[path.stem] = get_object(str(node["_target_"]))
+            found[path.stem] = (get_object(str(node["_target_"])), node)
         except Exception:  # noqa: BLE001 - a broken file is reported when an experiment uses it
             continue
     return found
+
+
+def filter_classes_in_conf() -> dict[str, Any]:
+    """conf/filter/<name>.yaml -> the class its ``_target_`` names (following a file's defaults)."""
+    return {name: cls for name, (cls, _) in filter_nodes_in_conf().items()}
+
+
+def _kinds(filter_class: Any, node: Any) -> frozenset[str]:
+    """accepted_kinds from the variant's node; a node the class cannot read counts as none given."""
+    from filters.base import accepted_kinds
+    try:
+        return accepted_kinds(filter_class, node)
+    except Exception:  # noqa: BLE001 - build() reports a bad node with its own message
+        return accepted_kinds(filter_class)
 
 
 def check_measurement_kinds(cfg: DictConfig, variants: list[str]) -> None:
@@ -338,13 +376,13 @@ def check_measurement_kinds(cfg: DictConfig, variants: list[str]) -> None:
     both kinds and the filters in conf/filter/ that would fit."""
     from hydra.utils import get_object
 
-    from filters.base import MEASUREMENT_KINDS, accepted_kinds
+    from filters.base import MEASUREMENT_KINDS, produced_kind
 
     try:
         sensor_class = get_object(str(cfg.sensors.get("_target_")))
-    except Exception:  # noqa: BLE001 - build() reports an unknown _target_ with its own message
+        produced = produced_kind(sensor_class, cfg.sensors)
+    except Exception:  # noqa: BLE001 - build() reports an unknown _target_ or a bad node with its own message
         return
-    produced = getattr(sensor_class, "produces", None)
     if produced is None:             # a sensor that declares nothing: the filters find out themselves
         return
     for v in variants:
@@ -353,10 +391,10 @@ def check_measurement_kinds(cfg: DictConfig, variants: list[str]) -> None:
             filter_class = get_object(str(target))
         except Exception:  # noqa: BLE001 - build() reports an unknown _target_ with its own message
             continue
-        accepts = accepted_kinds(filter_class)
+        accepts = _kinds(filter_class, cfg.filters[v])
         if produced in accepts:
             continue
-        fitting = sorted(name for name, cls in filter_classes_in_conf().items() if produced in accepted_kinds(cls))
+        fitting = sorted(name for name, (cls, node) in filter_nodes_in_conf().items() if produced in _kinds(cls, node))
         declared = "declares" if getattr(filter_class, "accepts", None) is not None else \
             "declares no 'accepts', so it is taken to take a MeasurementSeries:"
         raise ConfigError(
@@ -414,6 +452,9 @@ def check_types(node: Any, key: str) -> None:
     values = OmegaConf.to_container(node, resolve=True)
     takes_any = any(p.kind is inspect.Parameter.VAR_KEYWORD for p in parameters.values())
     for name, value in values.items():
+        if name in ("_partial_", "_recursive_") and not isinstance(value, bool):
+            raise ConfigError(f"{key}.{name}: {_short(value)} is not allowed; it must be true or false (Hydra's "
+                              f"{name} flag of {target}).")
         if name.startswith("_"):
             continue
         where = f"{key}.{name}"
@@ -458,6 +499,10 @@ def _signature(target: Any, key: str) -> tuple[dict[str, inspect.Parameter] | No
                 parameters.setdefault(p.name, p)
                 if p.name in resolved:
                     hints.setdefault(p.name, resolved[p.name])
+                elif p.annotation is not inspect.Parameter.empty and not isinstance(p.annotation, str):
+                    # a signature built with its types (Stone Soup's components declare theirs so, not
+                    # in __annotations__, which get_type_hints reads)
+                    hints.setdefault(p.name, p.annotation)
         if not any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params):
             closed = True
             break
@@ -494,6 +539,8 @@ def _type_problem(value: Any, hint: Any) -> str | None:
         return None if isinstance(value, (int, float)) and not isinstance(value, bool) else "a number"
     if hint is str:
         return None if isinstance(value, str) else "a string"
+    if isinstance(hint, type) and issubclass(hint, numbers.Real):       # e.g. Stone Soup's Probability
+        return None if isinstance(value, (int, float)) and not isinstance(value, bool) else "a number"
     if origin in (list, tuple, collections.abc.Sequence) or hint in (list, tuple):
         if not isinstance(value, (list, tuple)):
             return f"a list{_of(args)}"
