@@ -15,8 +15,8 @@ import pytest
 from hydra.utils import get_object
 from omegaconf import OmegaConf
 
-from filters.base import MEASUREMENT_KINDS, SERIES_KINDS, accepted_kinds
-from pipeline.config import filter_classes_in_conf
+from filters.base import MEASUREMENT_KINDS, SERIES_KINDS, accepted_kinds, produced_kind
+from pipeline.config import filter_classes_in_conf, filter_nodes_in_conf
 from pipeline.errors import ConfigError
 from tests.test_pipeline import cli, run_in_process
 
@@ -25,13 +25,27 @@ ROOT = Path(__file__).resolve().parents[1]
 
 def test_every_shipped_sensor_and_filter_declares_documented_kinds():
     for path in sorted((ROOT / "conf" / "sensors").glob("*.yaml")):
-        sensor = get_object(OmegaConf.load(path)["_target_"])
-        assert sensor.produces in MEASUREMENT_KINDS, path.name
+        node = OmegaConf.load(path)
+        sensor = get_object(node["_target_"])
+        # a class whose kind follows from its node (pipeline.stonesoup's sensor: its measurement model)
+        assert produced_kind(sensor, node) in MEASUREMENT_KINDS, path.name
     classes = filter_classes_in_conf()
     assert len(classes) == len(list((ROOT / "conf" / "filter").glob("*.yaml")))
     for name, cls in classes.items():
         assert getattr(cls, "accepts", None), f"{name}: {cls.__name__} declares no accepts"
         assert set(cls.accepts) <= set(MEASUREMENT_KINDS), name
+    for name, (cls, node) in filter_nodes_in_conf().items():
+        assert accepted_kinds(cls, node) <= set(cls.accepts), name
+
+
+def test_a_kind_read_off_the_config_node_counts_before_the_class():
+    """pipeline.stonesoup's variant takes the kind of its measurement model's type, known by name (no
+    Stone Soup object built, and no Stone Soup needed to tell it)."""
+    from pipeline.stonesoup.variant import StoneSoupFilter
+    nodes = filter_nodes_in_conf()
+    assert accepted_kinds(StoneSoupFilter, nodes["stonesoup_kf_cv"][1]) == {"position_xy"}
+    assert accepted_kinds(StoneSoupFilter, nodes["stonesoup_ekf_cv"][1]) == {"range_azimuth_elevation"}
+    assert accepted_kinds(StoneSoupFilter, OmegaConf.create({"_target_": "x"})) == StoneSoupFilter.accepts
 
 
 def test_a_filter_that_declares_nothing_takes_a_measurement_series():
@@ -53,7 +67,14 @@ def test_a_filter_that_declares_nothing_takes_a_measurement_series():
      "(pipeline.studies.sonar.sensor.ActivePassiveSonar) produces 'sonar_bearing_range'"),
     (["experiment=mie_los", "+filter@filters.x=ammpf"],
      "Filters in conf/filter/ that take 'range_azimuth_elevation': ['imm_cv_ct', 'kalman_ca', 'kalman_cv', 'kalman_singer', "
-     "'kalman_sonar', 'mie_a', 'mie_a_full', 'mie_b', 'mie_b_nocomp', 'mie_c']"),
+     "'kalman_sonar', 'mie_a', 'mie_a_full', 'mie_b', 'mie_b_nocomp', 'mie_c', 'stonesoup_ekf_cv', 'stonesoup_ukf_cv']"),
+    # a Stone Soup variant takes its measurement model's kind (LinearGaussian: positions)
+    (["experiment=mie_los", "+filter@filters.x=stonesoup_kf_cv"],
+     "filters.x: pipeline.stonesoup.variant.StoneSoupFilter declares ['position_xy'] measurements, but this "
+     "experiment's sensor (pipeline.studies.mie_los.sensor.Radar3D) produces 'range_azimuth_elevation'"),
+    (["experiment=ao_vsimm_s1", "+filter@filters.x=stonesoup_ekf_cv"],
+     "Filters in conf/filter/ that take 'position_xy': ['ao_vsimm', 'fsimm', 'imm_cv_ct', 'kalman_ca', 'kalman_cv', "
+     "'kalman_singer', 'kalman_sonar', 'stonesoup_kf_cv', 'stonesoup_pf_cv', 'vsimm', 'vsimm_new_old']"),
     (["experiment=ao_vsimm_s1", "filters.fsimm.models=${nothing}"],
      "filters.fsimm.models: '${nothing}' cannot be resolved (Interpolation key 'nothing' not found)"),
 ])
@@ -91,7 +112,7 @@ def test_the_shipped_filters_run_in_every_experiment_of_their_kind():
     with initialize_config_dir(version_base="1.3", config_dir=str(ROOT / "conf")):
         for path in sorted((ROOT / "conf" / "experiment").glob("*.yaml")):
             cfg = compose("config", overrides=[f"experiment={path.stem}"])
-            produced = get_object(cfg.sensors._target_).produces
+            produced = produced_kind(get_object(cfg.sensors._target_), cfg.sensors)
             fitting = [name for name, cls in classes.items() if produced in cls.accepts]
             assert fitting, path.stem
             check_measurement_kinds(cfg, list(cfg.filters.keys()))     # the shipped variants fit
