@@ -324,7 +324,7 @@ def check_targets(cfg: DictConfig) -> None:
             top = target.split(".", 1)[0]
             cause = exc.__cause__ if isinstance(exc.__cause__, ImportError) else exc
             missing = getattr(cause, "name", None) or ""
-            if isinstance(exc, ImportError) and top in EXTRA_OF_PACKAGE and missing.split(".", 1)[0] == top:
+            if isinstance(exc, ImportError) and top in EXTRA_OF_PACKAGE and missing == top:
                 extra = EXTRA_OF_PACKAGE[top]
                 raise ConfigError(f"{key}: {target!r} cannot be imported: {top} is not installed; it comes with the "
                                   f"[{extra}] extra: pip install -e '.[{extra}]'.") from None
