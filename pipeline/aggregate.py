@@ -146,34 +146,6 @@ def _names_an_objective(sweep_dir: Path) -> bool:
     return any(yaml.safe_load(p.read_text()).get("objective") is not None for p in sweep_dir.glob("*/config.yaml"))
 
 
-def report_best_job(sweep_dir: Path) -> None:
-    """With an objective (a parameter search): write <sweep_dir>/best_config.yaml and say which job won.
-    Optuna's own optimization_results.yaml holds the best parameters only; this adds the whole config
-    of the job they came from, and checks that both name the same value."""
-    try:
-        best = write_best_config(sweep_dir)
-    except PipelineError as exc:
-        print(f"  no best job: {exc}", file=sys.stderr)
-        return
-    if best is None:
-        if _names_an_objective(sweep_dir):
-            print("  no best job: no job that ended ok has a finite objective value", file=sys.stderr)
-        return
-    value = best["objective"]["value"]
-    print(f"  best job {best['job_num']} of {best['compared']}: {best['objective']['series']} = {value:.6g}; its "
-          f"config in {sweep_dir / BEST_CONFIG}", file=sys.stderr)
-    optuna = sweep_dir / "optimization_results.yaml"
-    if optuna.is_file():
-        reported = yaml.safe_load(optuna.read_text()).get("best_value")
-        if reported is not None and reported != value:   # e.g. a study resumed from storage with older trials
-            print(f"  note: Optuna's best_value {reported} (optimization_results.yaml) is not this sweep's best job's "
-                  f"{value}: the study holds trials this folder does not", file=sys.stderr)
-
-
-def _names_an_objective(sweep_dir: Path) -> bool:
-    return any(yaml.safe_load(p.read_text()).get("objective") is not None for p in sweep_dir.glob("*/config.yaml"))
-
-
 def main(argv: list[str] | None = None) -> int:
     args = sys.argv[1:] if argv is None else argv
     if len(args) != 1 or not Path(args[0]).is_dir():

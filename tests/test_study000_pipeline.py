@@ -300,7 +300,8 @@ def test_pipeline_with_the_stub_writes_the_new_metrics(study_run):
     expected = {"position_rmse", "velocity_rmse", "acceleration_rmse", "nees", "nees_lower", "nees_upper",
                 "input_level_x", "input_level_y",
                 "input_level_z", "detections", "detections_axis_x", "detections_axis_y", "detections_axis_z",
-                "position_bound", "position_rmse_over_bound"}          # the stub exports no NIS
+                "position_bound", "position_rmse_over_bound",          # the stub exports no NIS
+                "position_bound_model", "position_rmse_over_bound_model"}
     assert set(metrics["series"]) == expected
 
     def series(metric, variant="b"):
@@ -460,7 +461,8 @@ def test_study_001_printed_table_is_unchanged(tmp_path):
     assert set(out.metrics["series"]) == {"acceleration_rmse_x", "acceleration_rmse_y", "position_rmse",
                                           "velocity_rmse", "nees", "nees_lower", "nees_upper", "models_evaluated",
                                           "nis", "nis_lower", "nis_upper", "position_bound",
-                                          "position_rmse_over_bound"}
+                                          "position_rmse_over_bound", "position_bound_model",
+                                          "position_rmse_over_bound_model"}
     # after_switch (steps 57-200) holds no step of a 30-step run: left out with a warning, no NaN rows
     assert set(out.summary["window"].drop_nulls()) == {"all"}
     header = next(line for line in out.table.splitlines() if line.startswith("variant"))
