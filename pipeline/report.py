@@ -523,12 +523,7 @@ def draw_figure(df: pl.DataFrame, spec: FigureSpec, path: Path, variants: Sequen
     ax.grid(True, alpha=0.3)
     if groups[0][0] is not None or spec.reference:
         ax.legend(fontsize=8)
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp.png")
-    fig.savefig(tmp)
-    plt.close(fig)
-    tmp.replace(path)
+    save_figure(fig, path)
 
 
 def limit_figures(tables: RunTables) -> list[FigureSpec]:
@@ -721,6 +716,18 @@ def _comparisons_section(tables: RunTables) -> list[str]:
                      f"{row['window']} | {interval(row['difference'], row['difference_low'], row['difference_high'])} | "
                      f"{ratio} | {p} | {'**yes**' if row['resolved'] else 'no'} |")
     return lines + [""]
+
+
+def save_figure(fig, path: Path) -> None:
+    """Lay out, write atomically (a temp file renamed: a reader never sees half a PNG) and close."""
+    import matplotlib.pyplot as plt
+
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp.png")
+    fig.savefig(tmp)
+    plt.close(fig)
+    tmp.replace(path)
 
 
 def _cell(text: str) -> str:

@@ -455,12 +455,8 @@ def draw_metric_figure(data: pl.DataFrame, *, x: str, series: str, window: str |
         missing = "; ".join(left_out)
         note += f"\nnot drawn (no result): {missing if len(missing) <= 110 else missing[:109] + '…'}"
     fig.suptitle(f"{series}, window {window or NO_WINDOW + ' (whole run)'}, against {x}\n{note}", fontsize=10)
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp.png")
-    fig.savefig(tmp)
-    plt.close(fig)
-    tmp.replace(path)
+    from pipeline.report import save_figure
+    save_figure(fig, path)
 
 
 def _unit(rows: pl.DataFrame, series: str) -> str:
