@@ -73,7 +73,7 @@ def format_comparisons(comparisons: pl.DataFrame, summary: pl.DataFrame) -> list
     """Each variant minus the reference on the printed metrics, per window, paired over the runs."""
     names = dict(zip(summary["variant_key"].to_list(), summary["variant"].to_list()))
     reference = names.get(comparisons["reference_key"][0], comparisons["reference_key"][0])
-    lines = ["", f"paired with {reference} over the same runs: difference ± half its 95 % interval; "
+    lines = ["", f"paired with {reference} over the same runs: difference [its 95 % interval]; "
                  f"* = resolved (the interval excludes 0)"]
     shown = dict(printed_columns(set(comparisons["series"].to_list())))
     for window in comparisons["window"].unique(maintain_order=True).to_list():
@@ -94,8 +94,8 @@ def format_comparisons(comparisons: pl.DataFrame, summary: pl.DataFrame) -> list
                 text = "+" + format_value(m, hit["difference"][0]) if hit["difference"][0] >= 0 \
                     else format_value(m, hit["difference"][0])
                 low, high = hit["difference_low"][0], hit["difference_high"][0]
-                if low is not None and high is not None:
-                    text += f" ± {_like(text, (high - low) / 2)}" + (" *" if hit["resolved"][0] else "  ")
+                if low is not None and high is not None:    # bootstrap intervals are asymmetric: both ends
+                    text += f" [{_like(text, low)}, {_like(text, high)}]" + (" *" if hit["resolved"][0] else "  ")
                 row.append(text)
             table.append(row)
         lines += _block(table, f"window: {window}")
