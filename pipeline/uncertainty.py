@@ -127,11 +127,9 @@ class RunValues:
     def _scaled(self, per_step: np.ndarray) -> np.ndarray:
         return per_step if self.scale is None else per_step / self.scale
 
-    def resampled_per_step(self, counts: np.ndarray, index: np.ndarray, columns: np.ndarray,
-                           totals: "ResampledTotals") -> np.ndarray:
+    def resampled_per_step(self, counts: np.ndarray, columns: np.ndarray, totals: "ResampledTotals") -> np.ndarray:
         """(B, C) the values at steps ``columns`` of B resamples of the runs: ``counts`` (B, R) how often
-        each run is drawn, ``index`` (B, n) the drawn runs (a median needs them; the others weigh the
-        runs by their counts through ``totals``, which shares sums between metrics of one array)."""
+        each run is drawn; ``totals`` shares the weighted sums between the metrics of one array."""
         with warnings.catch_warnings(), np.errstate(invalid="ignore", divide="ignore"):
             warnings.simplefilter("ignore", RuntimeWarning)
             if self.across_runs == "median":
@@ -457,7 +455,8 @@ def bootstrap_values(groups: Sequence[tuple[RunValues, Sequence[WindowStatistic]
                      outputs: int, seed: Sequence[int], confidence: float, resamples: int):
     """Bootstrap over the runs, BCa: ``combine(values)`` maps the statistics' values on a set of
     resamples (a list of (B,) arrays in the order of ``groups``) to ``outputs`` rows (outputs, B).
-    Returns (low, high, standard error, method) arrays over the outputs.
+    Returns (low, high, standard error, method) arrays over the outputs and the bootstrap
+    distribution itself (outputs, resamples).
 
     The same resamples (``resamples`` x ``runs`` run indices from a generator seeded by ``seed``) serve
     every output, so a difference of two outputs is a paired one. The BCa interval is Efron's, as
@@ -475,9 +474,7 @@ def bootstrap_values(groups: Sequence[tuple[RunValues, Sequence[WindowStatistic]
     drawn = rng.integers(0, runs, size=(resamples, runs))
     counts = np.zeros((resamples, runs))
     np.add.at(counts, (np.repeat(np.arange(resamples), runs), drawn.ravel()), 1.0)
-    # the jackknife: each run left out once
-    left_out = np.array([np.delete(np.arange(runs), r) for r in range(runs)]) if runs > 1 else np.zeros((1, 0), int)
-    jack_counts = 1.0 - np.eye(runs)
+    jack_counts = 1.0 - np.eye(runs)                    # the jackknife: each run left out once
     columns = [np.unique(np.concatenate([s.steps for s in stats_ if s.over_steps != "pool"] or
                                         [np.zeros(0, dtype=np.intp)])) for _, stats_ in groups]
     columns_of: dict[int, np.ndarray] = {}
@@ -489,8 +486,8 @@ def bootstrap_values(groups: Sequence[tuple[RunValues, Sequence[WindowStatistic]
     for g, (rv, _) in enumerate(groups):
         sharing.setdefault(id(rv.values), []).append(g)
 
-    def evaluate(all_counts: np.ndarray, all_index: np.ndarray, progress: Progress = SILENT) -> list[np.ndarray]:
-        """Every statistic's value on each resample (rows of counts / index): array by array, batch by
+    def evaluate(all_counts: np.ndarray, progress: Progress = SILENT) -> list[np.ndarray]:
+        """Every statistic's value on each resample (rows of counts): array by array, batch by
         batch, the metrics sharing an array reading one product of counts and values; ``progress``
         hears of each array done."""
         progress.start(len(sharing), "bootstrap, metric", None)
@@ -498,17 +495,16 @@ def bootstrap_values(groups: Sequence[tuple[RunValues, Sequence[WindowStatistic]
         totals = ResampledTotals(columns_of)
         for key, members in sharing.items():
             needed = columns_of[key]
-            # a batch holds a few (B, C) arrays; a median also the (B, R, C[, m]) drawn values
+            # a batch holds a few (B, C) arrays; a median also its (B, runs x members, C) weights
             rv = groups[members[0]][0]
-            drawn = runs * int(np.prod(rv.values.shape[2:])) if rv.across_runs == "median" else 1   # (B, I, C) weights
-            batch = max(1, _BATCH_CELLS // (max(needed.size, 1) * drawn))
+            items = runs * int(np.prod(rv.values.shape[2:])) if rv.across_runs == "median" else 1
+            batch = max(1, _BATCH_CELLS // (max(needed.size, 1) * items))
             for first in range(0, all_counts.shape[0], batch):
                 counts_b = all_counts[first:first + batch]
-                index_b = all_index[first:first + batch]
                 totals.batch(first)
                 for g in members:
                     rv, statistics = groups[g]
-                    per_step = rv.resampled_per_step(counts_b, index_b, needed, totals) if needed.size else None
+                    per_step = rv.resampled_per_step(counts_b, needed, totals) if needed.size else None
                     for part, statistic in zip(parts[g], statistics):
                         part.append(statistic.resampled(per_step, needed, counts_b))
             progress.advance()
@@ -517,10 +513,10 @@ def bootstrap_values(groups: Sequence[tuple[RunValues, Sequence[WindowStatistic]
     with warnings.catch_warnings(), np.errstate(invalid="ignore", divide="ignore"):
         warnings.simplefilter("ignore", RuntimeWarning)
         # the resamples are the work (the jackknife's and the point's rows are few): their progress
-        distribution = np.asarray(combine(evaluate(counts, drawn, current_progress())),
+        distribution = np.asarray(combine(evaluate(counts, current_progress())),
                                   dtype=float).reshape(outputs, resamples)
-        jackknife = np.asarray(combine(evaluate(jack_counts, left_out)), dtype=float).reshape(outputs, runs)
-        point = np.asarray(combine(evaluate(np.ones((1, runs)), np.arange(runs)[None, :])), dtype=float).reshape(outputs)
+        jackknife = np.asarray(combine(evaluate(jack_counts)), dtype=float).reshape(outputs, runs)
+        point = np.asarray(combine(evaluate(np.ones((1, runs)))), dtype=float).reshape(outputs)
 
         finite = np.isfinite(distribution).mean(axis=1) >= 0.99
         se = np.nanstd(distribution, axis=1, ddof=1)
@@ -547,8 +543,7 @@ def bootstrap_values(groups: Sequence[tuple[RunValues, Sequence[WindowStatistic]
     method[constant] = "constant"
     low[~finite], high[~finite], se[~finite] = np.nan, np.nan, np.nan
     method[~finite] = "none"
-    bootstrap_values.last_distribution = distribution      # the resamples themselves (summarize keeps some)
-    return low, high, se, method
+    return low, high, se, method, distribution
 
 
 def stream_seed(seed: int, *names: str) -> list[int]:
@@ -608,10 +603,10 @@ def summarize(rows: Sequence[Estimated], reference: str | None, seed: int, confi
         return np.stack(out)
 
     outputs = len(rows) + 2 * len(pairs)
-    low, high, se, method = bootstrap_values(groups, runs, combine, outputs, stream_seed(seed, "summary"),
-                                             confidence, resamples)
+    low, high, se, method, distribution = bootstrap_values(groups, runs, combine, outputs,
+                                                           stream_seed(seed, "summary"), confidence, resamples)
     if kept is not None:
-        kept["values"] = bootstrap_values.last_distribution[:len(rows), :KEPT_RESAMPLES]
+        kept["values"] = distribution[:len(rows), :KEPT_RESAMPLES]
     intervals: dict[int, Interval] = {}
     points = [r.statistic.value() for r in rows]
     for i, r in enumerate(rows):
@@ -651,16 +646,6 @@ def summarize(rows: Sequence[Estimated], reference: str | None, seed: int, confi
             "wilcoxon_p": p_value, "resolved": resolved,
         })
     return intervals, comparisons
-
-
-def runs_to_decide(value: float, low: float, high: float, threshold: float, runs: int) -> int | None:
-    """Runs that would likely put the interval on one side of ``threshold``: the half-width shrinks as
-    1/sqrt(runs), so n' = n (half-width / |value - threshold|)^2 (None: the value is on the threshold)."""
-    gap = abs(value - threshold)
-    half = (high - value) if threshold > value else (value - low)
-    if not (np.isfinite(gap) and np.isfinite(half)) or gap == 0:
-        return None
-    return int(np.ceil(runs * (half / gap) ** 2))
 
 
 def counts_as_flags(flags: np.ndarray) -> np.ndarray:

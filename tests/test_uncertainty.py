@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from pipeline.uncertainty import (Estimated, RunValues, WindowStatistic, bootstrap_values, runs_to_decide,
+from pipeline.uncertainty import (Estimated, RunValues, WindowStatistic, bootstrap_values,
                                   stream_seed, summarize)
 
 
@@ -92,7 +92,7 @@ def test_bca_is_scipys_on_the_same_resamples():
     rv = RunValues(squared[:, None], "rms")
     statistic = WindowStatistic(rv, [0])
     seed = stream_seed(11, "check")
-    low, high, se, method = bootstrap_values([(rv, [statistic])], 60, lambda v: np.stack(v), 1, seed, 0.95, 999)
+    low, high, se, method, _ = bootstrap_values([(rv, [statistic])], 60, lambda v: np.stack(v), 1, seed, 0.95, 999)
 
     def rmse(sample, axis=-1):
         return np.sqrt(np.mean(sample, axis=axis))
@@ -158,12 +158,6 @@ def test_a_ratio_to_a_bound_shares_the_rmse_runs():
     assert intervals[0].low == pytest.approx(intervals[1].low / 2)
 
 
-def test_the_runs_that_would_decide_a_target_shrink_the_half_width_as_one_over_sqrt_runs():
-    # value 1.05 +- 0.1 at 100 runs against a threshold of 1.0: (0.1 / 0.05)^2 x 100 = 400 runs
-    assert runs_to_decide(1.05, 0.95, 1.15, 1.0, 100) == 400
-    assert runs_to_decide(1.0, 0.9, 1.1, 1.0, 100) is None
-
-
 def test_bad_kinds_are_refused():
     with pytest.raises(ValueError, match="across_runs"):
         RunValues(np.zeros((2, 2)), "average")
@@ -188,7 +182,7 @@ def test_a_bootstrapped_median_over_runs_and_members_matches_a_direct_resample()
     values[3, 2, :] = np.nan
     rv = RunValues(values, "median")
     statistic = WindowStatistic(rv, np.arange(6))
-    low, high, se, method = bootstrap_values([(rv, [statistic])], 20, lambda v: np.stack(v), 1,
+    low, high, se, method, _ = bootstrap_values([(rv, [statistic])], 20, lambda v: np.stack(v), 1,
                                              stream_seed(1, "m"), 0.95, 400)
     drawn = np.random.default_rng(stream_seed(1, "m")).integers(0, 20, size=(400, 20))
     direct = np.array([np.nanmean(np.nanmedian(np.moveaxis(values[i], 2, 1).reshape(-1, 6), axis=0))
