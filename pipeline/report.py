@@ -224,13 +224,11 @@ class RunTables:
     summary: pl.DataFrame
     metrics: pl.DataFrame
     wide: pl.DataFrame          # the summary pivoted: one row per window, one column per "<variant_key>:<series>"
-    wide_low: pl.DataFrame | None = None     # the same with each value's ci_low / ci_high (the value where none)
-    wide_high: pl.DataFrame | None = None
     comparisons: pl.DataFrame | None = None
     wide_resamples: pl.DataFrame | None = None   # the wide table once per joint bootstrap resample (column resample)
 
     def query(self, sql: str, wide: pl.DataFrame | None = None) -> pl.DataFrame:
-        """``sql`` over this run's tables; ``wide`` replaces the wide table (a corner of the intervals)."""
+        """``sql`` over this run's tables; ``wide`` replaces the wide table (the resampled one)."""
         from pipeline.query import check_tables_only
         check_tables_only(sql)                     # the run's tables only, no file-reading functions
         frames = {"summary": self.summary, "metrics": self.metrics, "wide": self.wide if wide is None else wide}
@@ -262,16 +260,12 @@ def load_run(run_dir: Path) -> RunTables:
 
     summary = read("summary.parquet")
     comparisons = read("comparisons.parquet") if (run_dir / "comparisons.parquet").is_file() else None
-    low = high = None
-    if {"ci_low", "ci_high"} <= set(summary.columns):
-        low = pivot_summary(summary.with_columns(pl.coalesce("ci_low", "value").alias("value")))
-        high = pivot_summary(summary.with_columns(pl.coalesce("ci_high", "value").alias("value")))
     wide = pivot_summary(summary)
     resampled = None
     if (run_dir / "resamples.parquet").is_file():
         resampled = resampled_wide(wide, read("resamples.parquet"))
     return RunTables(run_dir, str(status.get("experiment") or config.get("experiment_name")), config, status,
-                     summary, read("metrics.parquet"), wide, low, high, comparisons, resampled)
+                     summary, read("metrics.parquet"), wide, comparisons, resampled)
 
 
 def resampled_wide(wide: pl.DataFrame, resamples: pl.DataFrame) -> pl.DataFrame | None:
@@ -312,18 +306,13 @@ class TargetResult:
 
 
 VERDICTS = ("PASS", "FAIL", "INCONCLUSIVE", "ERROR")
-MAX_CORNERS = 1024
-MOST_RUNS_FACTOR = 100               # INCONCLUSIVE beyond 100x the runs: 'more than 100x'
 
 
 def evaluate_target(tables: RunTables, spec: TargetSpec) -> TargetResult:
     """The target's query on the values, then on the run's stored joint bootstrap resamples
-    (``_judged_on_resamples``: paired, the way the runs were drawn). A run written before the
-    resamples were stored is judged on every corner of the 95 % intervals of the wide columns the
-    query reads: PASS when it passes at the values and at every corner, FAIL when it fails at all of
-    them, INCONCLUSIVE otherwise (conservative: the corners ignore that variants share runs). A
-    query that reads no interval (the summary or metrics tables directly, window-free values such
-    as compute time) is judged on its values."""
+    (``_judged_on_resamples``: paired, the way the runs were drawn). A query that reads no resampled
+    value (the summary or metrics tables directly, window-free values such as compute time), and a
+    run stored without resamples, are judged on their values, and the result says so."""
     try:
         df = tables.query(spec.query)
     except Exception as exc:  # noqa: BLE001 - a broken query is reported, not raised
@@ -336,33 +325,11 @@ def evaluate_target(tables: RunTables, spec: TargetSpec) -> TargetResult:
         return TargetResult(spec, "no value: an input of the query is NULL (an empty window, a variant or "
                                   "metric this run does not have)", "ERROR")
     point = bool(row["pass"])
-    if tables.wide_resamples is not None:
-        return _judged_on_resamples(tables, spec, str(row["measured"]), point)
-    columns = _interval_columns(tables, spec.query)
-    if not columns:
+    if tables.wide_resamples is None:
         return TargetResult(spec, str(row["measured"]), "PASS" if point else "FAIL", point,
-                            interval_note="judged on the values: the query reads no summary interval")
-    outcomes = _corner_outcomes(tables, spec.query, columns, 1.0)
-    if outcomes is None:
-        return TargetResult(spec, str(row["measured"]), "PASS" if point else "FAIL", point,
-                            interval_note="judged on the values: a corner of the intervals gave no verdict")
-    note = f"{len(columns)} value(s) with intervals: " + ", ".join(columns)
-    if all(o == point for o in outcomes):
-        return TargetResult(spec, str(row["measured"]), "PASS" if point else "FAIL", point, interval_note=note)
-    runs = int(tables.status.get("runs") or 0)
-
-    def decided(factor: float) -> bool:          # the verdict of the values, with the runs x factor
-        shrunk = _corner_outcomes(tables, spec.query, columns, 1.0 / math.sqrt(factor))
-        return shrunk is not None and all(o == point for o in shrunk)
-
-    needed = f"more than {MOST_RUNS_FACTOR}x the runs"
-    if decided(MOST_RUNS_FACTOR):                 # bisect the factor on a log scale (shrinking decides for good)
-        low, high = 1.0, float(MOST_RUNS_FACTOR)
-        for _ in range(14):
-            middle = math.sqrt(low * high)
-            low, high = (low, middle) if decided(middle) else (middle, high)
-        needed = f"about {math.ceil(runs * high)} runs" if runs else f"about {high:.2g}x the runs"
-    return TargetResult(spec, str(row["measured"]), "INCONCLUSIVE", point, needed, note)
+                            interval_note="judged on the values: the run stored no resamples (written before "
+                                          "resamples.parquet)")
+    return _judged_on_resamples(tables, spec, str(row["measured"]), point)
 
 
 def _judged_on_resamples(tables: RunTables, spec: TargetSpec, measured: str, point: bool) -> TargetResult:
@@ -413,43 +380,6 @@ def _judged_on_resamples(tables: RunTables, spec: TargetSpec, measured: str, poi
         factor = (1.96 / z) ** 2
         needed = f"about {math.ceil(runs * factor)} runs" if runs else f"about {factor:.2g}x the runs"
     return TargetResult(spec, measured, "INCONCLUSIVE", point, needed, note)
-
-
-def _interval_columns(tables: RunTables, sql: str) -> list[str]:
-    """The wide columns the query names whose values have an interval wider than a point."""
-    import re
-    if tables.wide_low is None or not re.search(r"\bwide\b", sql):
-        return []
-    named = [c for c in dict.fromkeys(re.findall(r'"([^"]+)"', sql)) if c in tables.wide.columns and c != "window"]
-    return [c for c in named if not tables.wide_low[c].equals(tables.wide_high[c])]
-
-
-def _corner_outcomes(tables: RunTables, sql: str, columns: Sequence[str], shrink: float) -> list[bool] | None:
-    """The query's ``pass`` at each corner of the intervals of ``columns`` (each at its low or high end),
-    the half-widths scaled by ``shrink``; None when a corner gives no verdict."""
-    import itertools
-
-    import numpy as np
-
-    corners = itertools.product((0, 1), repeat=len(columns))
-    if 2 ** len(columns) > MAX_CORNERS:          # many inputs: a seeded sample of the corners
-        rng = np.random.default_rng(0)
-        corners = (tuple(rng.integers(0, 2, len(columns))) for _ in range(MAX_CORNERS))
-    outcomes = []
-    for corner in corners:
-        replaced = []
-        for column, end in zip(columns, corner):
-            value = tables.wide[column]
-            bound = (tables.wide_high if end else tables.wide_low)[column]
-            replaced.append((value + (bound - value) * shrink).alias(column))
-        try:
-            df = tables.query(sql, tables.wide.with_columns(replaced))
-        except Exception:  # noqa: BLE001 - e.g. a corner that divides by 0
-            return None
-        if df.height != 1 or df["pass"][0] is None:
-            return None
-        outcomes.append(bool(df["pass"][0]))
-    return outcomes
 
 
 def evaluate_finding(tables: RunTables, spec: FindingSpec) -> str:

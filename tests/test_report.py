@@ -145,63 +145,74 @@ def test_current_rechecks_a_stored_run_against_the_definitions_in_conf(small_run
         [(t.spec.id, t.measured, t.verdict) for t in recorded.targets]
 
 
-# ---- targets judged with the values' intervals (issue 18) ------------------------------------------
-def _tables_with(value: float, low: float, high: float, runs: int = 100):
-    from pipeline.report import RunTables, pivot_summary
-    summary = pl.DataFrame({"variant_key": ["a"], "series": ["position_rmse"], "window": ["all"], "value": [value],
-                            "ci_low": [low], "ci_high": [high]})
-    return RunTables(Path("."), "x", {}, {"runs": runs}, summary, pl.DataFrame(), pivot_summary(summary),
-                     pivot_summary(summary.with_columns(pl.col("ci_low").alias("value"))),
-                     pivot_summary(summary.with_columns(pl.col("ci_high").alias("value"))))
+# ---- targets judged with the values' uncertainty (issue 18) ---------------------------------------
+def _tables_with_resamples(a: np.ndarray, b: np.ndarray | None = None, runs: int = 100):
+    """Summary values a[0] (and b[0]) of variants a (and b) with joint resamples a[1:] (b[1:]): the
+    same resampled runs in both."""
+    from pipeline.report import RunTables, pivot_summary, resampled_wide
+    columns = [("a", a)] + ([("b", b)] if b is not None else [])
+    summary = pl.DataFrame({"variant_key": [k for k, _ in columns], "series": ["position_rmse"] * len(columns),
+                            "window": ["all"] * len(columns), "value": [v[0] for _, v in columns]})
+    count = a.size - 1
+    resamples = pl.DataFrame({"variant_key": np.repeat([k for k, _ in columns], count),
+                              "series": ["position_rmse"] * len(columns) * count,
+                              "window": ["all"] * len(columns) * count,
+                              "resample": np.tile(np.arange(count), len(columns)).astype(np.int16),
+                              "value": np.concatenate([v[1:] for _, v in columns])})
+    wide = pivot_summary(summary)
+    return RunTables(Path("."), "x", {}, {"runs": runs}, summary, pl.DataFrame(), wide, None,
+                     resampled_wide(wide, resamples))
 
 
 THRESHOLD = TargetSpec("t", "below 10", "p", """SELECT CAST("a:position_rmse" AS VARCHAR) AS measured,
                                                     "a:position_rmse" < 10 AS pass FROM wide WHERE "window" = 'all'""")
 
 
-def test_a_target_is_pass_fail_or_inconclusive_by_where_its_interval_lies():
-    assert evaluate_target(_tables_with(9.0, 8.5, 9.5), THRESHOLD).verdict == "PASS"
-    assert evaluate_target(_tables_with(11.0, 10.5, 11.5), THRESHOLD).verdict == "FAIL"
-    straddling = evaluate_target(_tables_with(9.7, 9.3, 10.1), THRESHOLD)
+def _around(value: float, spread: float, seed: int = 0) -> np.ndarray:
+    """The value, then 400 resamples around it with standard deviation ``spread``."""
+    return np.concatenate([[value], value + spread * np.random.default_rng(seed).standard_normal(400)])
+
+
+def test_a_target_is_pass_fail_or_inconclusive_by_the_share_of_passing_resamples():
+    assert evaluate_target(_tables_with_resamples(_around(9.0, 0.2)), THRESHOLD).verdict == "PASS"
+    assert evaluate_target(_tables_with_resamples(_around(11.0, 0.2)), THRESHOLD).verdict == "FAIL"
+    straddling = evaluate_target(_tables_with_resamples(_around(9.8, 0.2)), THRESHOLD)
     assert straddling.verdict == "INCONCLUSIVE" and straddling.point_pass
-    # half-width 0.4 at 100 runs against a gap of 0.3: (0.4 / 0.3)^2 = 1.78x the runs
-    assert straddling.runs_to_decide == "about 178 runs"
-    assert evaluate_target(_tables_with(9.99, 5.0, 15.0), THRESHOLD).runs_to_decide == "more than 100x the runs"
+    # margin 0.2 over a standard error of 0.2: z ~ 1, so about (1.96 / 1)^2 x 100 runs
+    assert 300 <= int(straddling.runs_to_decide.split()[1]) <= 500
+    # the values pass but most resamples fail: no number of runs would make the values' verdict hold
+    leaning = _around(10.3, 0.2)
+    leaning[0] = 9.99
+    assert "lean against" in evaluate_target(_tables_with_resamples(leaning), THRESHOLD).runs_to_decide
 
 
 def test_a_target_over_a_window_free_value_is_judged_on_its_value():
     spec = TargetSpec("c", "t", "p", """SELECT 'x' AS measured, COUNT(*) = 1 AS pass FROM summary""")
-    result = evaluate_target(_tables_with(9.8, 9.4, 10.2), spec)
+    result = evaluate_target(_tables_with_resamples(_around(9.8, 0.2)), spec)
     assert result.verdict == "PASS" and "reads no summary interval" in result.interval_note
 
 
-def _tables_with_resamples(a: np.ndarray, b: np.ndarray, runs: int = 100):
-    """Summary values a[0], b[0] with joint resamples a[1:], b[1:] (the same resampled runs)."""
-    from pipeline.report import RunTables, pivot_summary, resampled_wide
-    summary = pl.DataFrame({"variant_key": ["a", "b"], "series": ["position_rmse"] * 2, "window": ["all"] * 2,
-                            "value": [a[0], b[0]], "ci_low": [a.min(), b.min()], "ci_high": [a.max(), b.max()]})
-    count = a.size - 1
-    resamples = pl.DataFrame({"variant_key": ["a"] * count + ["b"] * count, "series": ["position_rmse"] * 2 * count,
-                              "window": ["all"] * 2 * count, "resample": np.tile(np.arange(count), 2).astype(np.int16),
-                              "value": np.concatenate([a[1:], b[1:]])})
-    wide = pivot_summary(summary)
-    return RunTables(Path("."), "x", {}, {"runs": runs}, summary, pl.DataFrame(), wide, None, None, None,
-                     resampled_wide(wide, resamples))
+def test_a_run_without_stored_resamples_is_judged_on_its_values_and_says_so():
+    from pipeline.report import RunTables, pivot_summary
+    summary = pl.DataFrame({"variant_key": ["a"], "series": ["position_rmse"], "window": ["all"], "value": [9.8]})
+    result = evaluate_target(RunTables(Path("."), "x", {}, {"runs": 100}, summary, pl.DataFrame(),
+                                       pivot_summary(summary)), THRESHOLD)
+    assert result.verdict == "PASS" and "stored no resamples" in result.interval_note
 
 
 RATIO = TargetSpec("r", "a within 2 % of b", "p", """SELECT CAST("a:position_rmse" / "b:position_rmse" AS VARCHAR) AS measured,
     ABS("a:position_rmse" / "b:position_rmse" - 1) < 0.02 AS pass FROM wide WHERE "window" = 'all'""")
 
 
-def test_a_paired_target_is_judged_on_joint_resamples_not_on_independent_intervals():
+def test_a_paired_target_is_judged_on_joint_resamples():
     rng = np.random.default_rng(1)
-    common = 20.0 + rng.normal(0, 1.0, 401)                 # the runs' spread, shared by both variants
+    common = 20.0 + rng.normal(0, 1.0, 401)                 # the runs' spread (5 %), shared by both variants
     a, b = common * 1.001, common.copy()                     # a differs by 0.1 %, whatever the runs
     result = evaluate_target(_tables_with_resamples(a, b), RATIO)
     assert result.verdict == "PASS" and "100.0 % of 400" in result.interval_note
-    # the same values judged on independent corners could not decide: their intervals overlap widely
-    corners = _tables_with(a[0], a.min(), a.max())
-    assert evaluate_target(corners, THRESHOLD).verdict == "FAIL"   # (a ~ 20 > 10: a sanity check of the helper)
+    # the same spreads resampled independently: the ratio's spread is the runs' (~7 %), undecided
+    unpaired = evaluate_target(_tables_with_resamples(a, np.concatenate([b[:1], rng.permutation(b[1:])])), RATIO)
+    assert unpaired.verdict == "INCONCLUSIVE"
 
 
 def test_an_inconclusive_paired_target_names_the_runs_that_would_decide_it():
