@@ -1,7 +1,7 @@
 """The viewer checks every study's recording test shares (issue 19: titles that fit, keys instead of
 legends, tracks up to now, no viewer warning), written once. A recording test module imports these
-and defines the fixtures they read: ``case``, ``chunks``, ``entities``, ``recording_variants`` (key ->
-display name) and ``write_recording`` (case, path -> writes the .rrd)."""
+and defines what they read: the fixtures ``case``, ``chunks`` and ``entities``, and ``VARIANTS`` (key ->
+display name) and ``_write(case, path)`` (writes the .rrd)."""
 
 from __future__ import annotations
 
@@ -10,6 +10,16 @@ import pytest
 from pipeline.blueprint_parts import title_chars
 from pipeline.colours import variant_colour
 from tests.rrd_reading import blueprint_views, capture_blueprint, legend_visible, up_to_now
+
+@pytest.fixture(scope="module")
+def recording_variants(request):
+    return request.module.VARIANTS
+
+
+@pytest.fixture(scope="module")
+def write_recording(request):
+    return request.module._write
+
 
 @pytest.fixture(scope="module")
 def blueprint(case, tmp_path_factory, write_recording):

@@ -189,17 +189,7 @@ def test_out_of_range_record_run_raises(case, tmp_path, bad):
 
 
 # ---- issue 19: what the viewer shows (the blueprint and the data, without pixels) ---------------
-from tests.recording_checks import (blueprint, test_every_title_fits_its_view,  # noqa: E402,F401
-                                    test_no_viewer_warning_while_writing_quiet,
+from tests.recording_checks import (blueprint, recording_variants, write_recording,  # noqa: E402,F401
+                                    test_every_title_fits_its_view, test_no_viewer_warning_while_writing_quiet,
                                     test_plots_have_no_legend_and_the_key_names_the_variants,
                                     test_tracks_are_drawn_up_to_now)
-
-
-@pytest.fixture(scope="module")
-def recording_variants():
-    return VARIANTS
-
-
-@pytest.fixture(scope="module")
-def write_recording():
-    return _write

@@ -177,21 +177,11 @@ def test_truth_without_ownship_raises(case, tmp_path):
 
 
 # ---- issue 19: what the viewer shows (the blueprint and the data, without pixels) ---------------
-from tests.recording_checks import (blueprint, test_every_title_fits_its_view,  # noqa: E402,F401
-                                    test_no_viewer_warning_while_writing_quiet,
+from tests.recording_checks import (blueprint, recording_variants, write_recording,  # noqa: E402,F401
+                                    test_every_title_fits_its_view, test_no_viewer_warning_while_writing_quiet,
                                     test_plots_have_no_legend_and_the_key_names_the_variants,
                                     test_tracks_are_drawn_up_to_now)
 from tests.rrd_reading import blueprint_views  # noqa: E402
-
-
-@pytest.fixture(scope="module")
-def recording_variants():
-    return VARIANTS
-
-
-@pytest.fixture(scope="module")
-def write_recording():
-    return _write
 
 
 def test_sonar_mode_timeline_has_short_labels_and_room(blueprint, chunks):
