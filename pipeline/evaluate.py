@@ -364,19 +364,17 @@ def resamples_table(estimated: Sequence[Estimated], values: np.ndarray | None) -
 
 
 def per_run_table(rows: Sequence[dict]) -> pl.DataFrame:
-    """run x variant x series x window: each run's own value of every summary statistic."""
-    parts = []
-    for r in rows:
-        statistic = r.get("statistic")
-        if statistic is None:
-            continue
-        values = statistic.per_run()
-        parts.append(pl.DataFrame({"run": np.arange(values.size, dtype=np.int32), "value": values.astype(float)})
-                     .with_columns(pl.lit(r["variant"]).alias("variant"), pl.lit(r["variant_key"]).alias("variant_key"),
-                                   pl.lit(r["series"]).alias("series"),
-                                   pl.lit(r["window"], dtype=pl.String).alias("window")))
-    if not parts:
-        return pl.DataFrame(schema={"run": pl.Int32, "variant": pl.String, "variant_key": pl.String,
-                                    "series": pl.String, "window": pl.String, "value": pl.Float64})
-    return (pl.concat(parts).select("run", "variant", "variant_key", "series", "window", "value")
-            .with_columns(pl.col("value").fill_nan(None)))
+    """run x variant x series x window: each run's own value of every summary statistic (one frame
+    built from the stacked values, not one per statistic)."""
+    estimated = [r for r in rows if r.get("statistic") is not None]
+    values = [r["statistic"].per_run().astype(float) for r in estimated]
+    counts = [v.size for v in values]
+
+    def repeated(key: str) -> pl.Series:
+        return pl.Series(key, np.repeat(np.array([r[key] for r in estimated], dtype=object), counts), dtype=pl.String)
+
+    return pl.DataFrame({
+        "run": np.concatenate([np.arange(n, dtype=np.int32) for n in counts]) if counts else np.zeros(0, np.int32),
+        "variant": repeated("variant"), "variant_key": repeated("variant_key"), "series": repeated("series"),
+        "window": repeated("window"),
+        "value": np.concatenate(values) if values else np.zeros(0)}).with_columns(pl.col("value").fill_nan(None))
