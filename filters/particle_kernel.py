@@ -300,9 +300,9 @@ def _scan_run(X, X_out, modes, z, dt, log_tpm, tpm, lik, mixture, observer, a_m,
             new_mode[i] = min(np.int64(u > c0) + np.int64(u > c1) + np.int64(u > c2), 2)
 
     # ---------------- propagation (eq 15), second-stage bearings and likelihood (eq 17)
-    ts, tc, ta, tb = np.empty(N), np.empty(N), np.empty(N), np.empty(N)
-    _turn_terms_of(X, parent, new_mode, a_m, dt, series, ts, tc, ta, tb)
-    _propagate(X, parent, ts, tc, ta, tb, noise, dt, sigma, gain, X_out)
+    turn = np.empty((4, N))
+    _turn_terms_of(X, parent, new_mode, a_m, dt, series, turn)
+    _propagate(X, parent, turn, noise, dt, sigma, gain, X_out)
     log_weights = np.empty(N)
     _second_stage(X_out, z32, received, ox, oy, lik, mixture, log_weights)
     for i in range(N):
@@ -438,46 +438,62 @@ def _first_stage_buoy(X, i, j, dt, tx, ty, shift, ox, oy, k_target, k_buoy, mixt
 
 
 @njit(**_JIT)
-def _turn_terms_of(X, parent, mode, a_m, dt, series, ts, tc, ta, tb):
-    """Per new particle, its parent's turn under its drawn mode (``turn_rates``, ``coordinated_turn``):
-    sin wT, cos wT, sin(wT)/w, (1 - cos wT)/w; CV (0, 1, T, 0) for mode 0 and below |w| = 1e-9."""
-    N = parent.shape[0]
-    for i in range(N):
+def _turn_terms_of(X, parent, mode, a_m, dt, series, turn):
+    """Per new particle, its parent's turn under its drawn mode (``turn_rates``, ``coordinated_turn``)
+    into turn (4, N): sin wT, cos wT, sin(wT)/w, (1 - cos wT)/w; CV (0, 1, T, 0) for mode 0 and
+    below |w| = 1e-9. Branch-free with the series (the loop vectorises), libm otherwise."""
+    if series:
+        _turn_terms_loop(X, parent, mode, a_m, dt, True, turn)
+    else:
+        _turn_terms_loop(X, parent, mode, a_m, dt, False, turn)
+
+
+@njit(inline="always", **_JIT)
+def _turn_terms_loop(X, parent, mode, a_m, dt, series, turn):
+    for i in range(parent.shape[0]):
         p = parent[i]
         vx, vy = X[2, p], X[3, p]
         omega = a_m / max(math.sqrt(vx * vx + vy * vy), 0.5)
         m = mode[i]
-        if m == 0 or omega < 1e-9:
-            ts[i], tc[i], ta[i], tb[i] = 0.0, 1.0, dt, 0.0
-        else:
-            s, one_minus_c = _sines(omega * dt, series)
-            sign = 1.0 if m == 1 else -1.0          # w < 0: sin wT and (1 - cos wT)/w change sign
-            ts[i], tc[i], ta[i], tb[i] = sign * s, 1.0 - one_minus_c, s / omega, sign * (one_minus_c / omega)
+        s, one_minus_c = _sines(omega * dt, series)
+        cv = m == 0 or omega < 1e-9
+        sign = 1.0 if m == 1 else -1.0          # w < 0: sin wT and (1 - cos wT)/w change sign
+        turn[0, i] = 0.0 if cv else sign * s
+        turn[1, i] = 1.0 if cv else 1.0 - one_minus_c
+        turn[2, i] = dt if cv else s / omega
+        turn[3, i] = 0.0 if cv else sign * (one_minus_c / omega)
 
 
 @njit(**_JIT)
-def _propagate(X, parent, ts, tc, ta, tb, noise, dt, sigma, gain, out):
+def _propagate(X, parent, turn, noise, dt, sigma, gain, out):
     """Eq 15: each parent under its drawn mode (``coordinated_turn``) plus the process noise
-    through Gamma (``SonobuoyModel.propagate``); the buoys move CV."""
+    through Gamma (``SonobuoyModel.propagate``); the buoys move CV. One output row group per loop,
+    so the loops vectorise (gathering the parents)."""
     N = parent.shape[0]
+    g0, g1, g2, g3 = gain[0], gain[1], gain[2], gain[3]
+    s0 = sigma[0]
     for i in range(N):
         p = parent[i]
         px, py, vx, vy = X[0, p], X[1, p], X[2, p], X[3, p]
-        s, c, a, b = ts[i], tc[i], ta[i], tb[i]
-        n0, n1 = noise[i, 0] * sigma[0], noise[i, 1] * sigma[0]
-        out[0, i] = (px + a * vx - b * vy) + n0 * gain[0]
-        out[1, i] = (py + b * vx + a * vy) + n1 * gain[1]
-        out[2, i] = (c * vx - s * vy) + n0 * gain[2]
-        out[3, i] = (s * vx + c * vy) + n1 * gain[3]
+        s, c, a, b = turn[0, i], turn[1, i], turn[2, i], turn[3, i]
+        n0, n1 = noise[i, 0] * s0, noise[i, 1] * s0
+        out[0, i] = (px + a * vx - b * vy) + n0 * g0
+        out[1, i] = (py + b * vx + a * vy) + n1 * g1
+        out[2, i] = (c * vx - s * vy) + n0 * g2
+        out[3, i] = (s * vx + c * vy) + n1 * g3
     for j in range(4):
-        o, sj = 4 + 4 * j, sigma[1 + j]
-        for i in range(N):
-            p = parent[i]
-            m0, m1 = noise[i, 2 + 2 * j] * sj, noise[i, 3 + 2 * j] * sj
-            out[o, i] = (X[o, p] + dt * X[o + 2, p]) + m0 * gain[0]
-            out[o + 1, i] = (X[o + 1, p] + dt * X[o + 3, p]) + m1 * gain[1]
-            out[o + 2, i] = X[o + 2, p] + m0 * gain[2]
-            out[o + 3, i] = X[o + 3, p] + m1 * gain[3]
+        _propagate_buoy(X, parent, noise, dt, sigma[1 + j], g0, g1, g2, g3, 4 + 4 * j, 2 + 2 * j, out)
+
+
+@njit(**_JIT)
+def _propagate_buoy(X, parent, noise, dt, sj, g0, g1, g2, g3, o, n, out):
+    for i in range(parent.shape[0]):
+        p = parent[i]
+        m0, m1 = noise[i, n] * sj, noise[i, n + 1] * sj
+        out[o, i] = (X[o, p] + dt * X[o + 2, p]) + m0 * g0
+        out[o + 1, i] = (X[o + 1, p] + dt * X[o + 3, p]) + m1 * g1
+        out[o + 2, i] = X[o + 2, p] + m0 * g2
+        out[o + 3, i] = X[o + 3, p] + m1 * g3
 
 
 @njit(**_JIT)
@@ -614,15 +630,53 @@ def _weighted_row_sum(A, j, w):
     return s
 
 
-@njit(**_REDUCE)
+@njit(**_JIT)
 def _covariance(centred, weighted, covariance, scale):
-    """covariance[j, q] = scale * sum_i weighted[j, i] centred[q, i], symmetric (q <= j computed)."""
+    """covariance[j, q] = scale * sum_i weighted[j, i] centred[q, i] for rows (n, N), n a multiple
+    of 4, symmetric (the q <= j half computed): 4 x 4 tiles, each one pass over the particles
+    with its 16 sums in registers (a quarter of the memory traffic of one pass per entry)."""
     n = centred.shape[0]
-    for j in range(n):
-        for q in range(j + 1):
-            v = scale * _row_dot(weighted, j, centred, q)
-            covariance[j, q] = v
-            covariance[q, j] = v
+    tile = np.empty(16)
+    for jb in range(0, n, 4):
+        for qb in range(0, jb + 1, 4):
+            _tile(weighted, jb, centred, qb, tile)
+            for a in range(4):
+                for b in range(4):
+                    j, q = jb + a, qb + b
+                    if q <= j:
+                        v = scale * tile[4 * a + b]
+                        covariance[j, q] = v
+                        covariance[q, j] = v
+
+
+@njit(**_REDUCE)
+def _tile(A, j, B, q, out):
+    """out[4 a + b] = sum_i A[j + a, i] B[q + b, i], a, b < 4: sixteen sums in one loop."""
+    s00 = s01 = s02 = s03 = s10 = s11 = s12 = s13 = 0.0
+    s20 = s21 = s22 = s23 = s30 = s31 = s32 = s33 = 0.0
+    for i in range(A.shape[1]):
+        a0, a1, a2, a3 = A[j, i], A[j + 1, i], A[j + 2, i], A[j + 3, i]
+        b0, b1, b2, b3 = B[q, i], B[q + 1, i], B[q + 2, i], B[q + 3, i]
+        s00 += a0 * b0
+        s01 += a0 * b1
+        s02 += a0 * b2
+        s03 += a0 * b3
+        s10 += a1 * b0
+        s11 += a1 * b1
+        s12 += a1 * b2
+        s13 += a1 * b3
+        s20 += a2 * b0
+        s21 += a2 * b1
+        s22 += a2 * b2
+        s23 += a2 * b3
+        s30 += a3 * b0
+        s31 += a3 * b1
+        s32 += a3 * b2
+        s33 += a3 * b3
+    out[0], out[1], out[2], out[3] = s00, s01, s02, s03
+    out[4], out[5], out[6], out[7] = s10, s11, s12, s13
+    out[8], out[9], out[10], out[11] = s20, s21, s22, s23
+    out[12], out[13], out[14], out[15] = s30, s31, s32, s33
 
 
 @njit(**_JIT)
@@ -682,16 +736,28 @@ def _liu_west(X, h, normals, out, centred):
     for i in range(N):
         for q in range(n):
             eps[q, i] = normals[i, q]
+    hL = np.zeros((n, n + 3), np.float32)              # h L in float32, zero-padded to whole blocks of 4
+    for j in range(n):
+        for q in range(j + 1):
+            hL[j, q] = F32(h * L[j, q])
     acc = np.empty(N, np.float32)
     for j in range(n):
         acc[:] = _ZERO
-        for q in range(j + 1):
-            f = F32(h * L[j, q])
-            for i in range(N):
-                acc[i] += eps[q, i] * f
+        for q in range(0, j + 1, 4):                   # four normals per pass over the particles
+            _jitter_block(eps, q, hL[j, q], hL[j, q + 1], hL[j, q + 2], hL[j, q + 3], acc)
         shift = F32((1.0 - a) * mean[j])
         for i in range(N):
             out[j, i] = a * X[j, i] + (acc[i] + shift)
+
+
+@njit(**_JIT)
+def _jitter_block(eps, q, f0, f1, f2, f3, acc):
+    """acc += eps[q] f0 + eps[q + 1] f1 + eps[q + 2] f2 + eps[q + 3] f3 (float32; rows past the
+    last have zero factors)."""
+    n = eps.shape[0]
+    q1, q2, q3 = min(q + 1, n - 1), min(q + 2, n - 1), min(q + 3, n - 1)
+    for i in range(acc.shape[0]):
+        acc[i] += ((eps[q, i] * f0 + eps[q1, i] * f1) + eps[q2, i] * f2) + eps[q3, i] * f3
 
 
 @njit(**_JIT)
