@@ -40,8 +40,10 @@ from one generator per run (spawned from the seed), so run r's particles do not 
 
 from __future__ import annotations
 
+import functools
 import os
 import time as _time
+import warnings
 import zlib
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -315,6 +317,51 @@ def available_processors() -> int:
         return os.cpu_count() or 1
 
 
+_MASK64 = (1 << 64) - 1
+
+
+def _pcg64_state(g: np.random.Generator) -> np.ndarray:
+    """A PCG64 Generator's state as (6,) uint64: state high, low, increment high, low, has_uint32, uinteger."""
+    d = g.bit_generator.state
+    state, inc = d["state"]["state"], d["state"]["inc"]
+    return np.array([state >> 64, state & _MASK64, inc >> 64, inc & _MASK64, d["has_uint32"], d["uinteger"]],
+                    dtype=np.uint64)
+
+
+def _set_pcg64_state(g: np.random.Generator, s: np.ndarray) -> None:
+    hi, lo, inc_hi, inc_lo, has, value = (int(v) for v in s)
+    g.bit_generator.state = {"bit_generator": "PCG64", "state": {"state": (hi << 64) | lo, "inc": (inc_hi << 64) | inc_lo},
+                             "has_uint32": has, "uinteger": value}
+
+
+@functools.cache
+def _inline_draws_match() -> bool:
+    """Whether the kernel's inline PCG64 and float32 ziggurat give exactly this numpy's numbers
+    (Generator.random, standard_normal(dtype=float32)) and leave the same state; checked once per
+    process on ~100 000 numbers (thousands of the ziggurat's wedge and tail cases). If numpy ever
+    changes them, the filters fall back to drawing with the Generators (slower, same results as
+    that numpy's)."""
+    from filters import particle_kernel as kernel
+
+    ok = True
+    for seed in (0, 20240517):
+        reference, copy = np.random.default_rng(seed), np.random.default_rng(seed)
+        state = _pcg64_state(copy)
+        for size in (1, 10_001, 40_000):
+            ok &= reference.random() == kernel._uniform(state)
+            normals = np.empty(size, dtype=np.float32)
+            kernel._normals(state, normals)
+            ok &= bool(np.array_equal(reference.standard_normal(size, dtype=np.float32), normals))
+            uniforms = np.empty(size)
+            kernel._uniforms(state, uniforms)
+            ok &= bool(np.array_equal(reference.random(size), uniforms))
+        ok &= bool(np.array_equal(_pcg64_state(reference), state))
+    if not ok:
+        warnings.warn("filters.particle: the compiled kernel's PCG64 draws differ from this numpy's; the particle "
+                      "filters draw with numpy's Generators instead (slower, same results)", RuntimeWarning)
+    return ok
+
+
 class _ScanDraws:
     """One scan's random numbers for a chunk of runs, drawn per run by the same Generator calls in
     the same order as ``filter_jump_markov`` (first-stage offset or the SIR-MM's mode uniforms,
@@ -510,16 +557,24 @@ class MultipleModelParticleFilter(_ModelParameters):
         log_tpm = np.log(np.maximum(self.tpm, 1e-300))
         sigma = np.array([self.target_sigma] + [self.buoy_sigma] * BUOYS)
         draws = _ScanDraws(R, N, self.auxiliary, self.lw_h > 0)
+        # each run's numbers in filter_jump_markov's order: drawn inside the kernel from the runs'
+        # PCG64 states (the same numbers, checked once per process), else by the Generators here
+        inline = _inline_draws_match() and all(type(g.bit_generator).__name__ == "PCG64" for g in gens)
+        rng = np.stack([_pcg64_state(g) for g in gens]) if inline else np.zeros((R, 6), dtype=np.uint64)
         for k in range(1, K):
             dt = float(reports.time[k] - reports.time[k - 1])
             G = noise_gain(dt, self.noise_gain)
-            draws.draw(gens)                                   # each run's numbers, in filter_jump_markov's order
+            if not inline:
+                draws.draw(gens)
             kernel.scan(X, X_out, modes, np.ascontiguousarray(reports.z[:, k]), dt, log_tpm, self.tpm, lik, mixture,
                         observer, self.max_acceleration, sigma, np.array([G[0, 0], G[1, 1], G[2, 0], G[3, 1]]),
                         self.lw_h, self.auxiliary, draws.first_offsets, draws.uniforms, draws.noise,
-                        draws.second_offsets, draws.normals, variance, k, states, covariances, mode_probability,
-                        ess, underflow, nis, nis_dof)
+                        draws.second_offsets, draws.normals, rng, inline, variance, k, states, covariances,
+                        mode_probability, ess, underflow, nis, nis_dof)
             X, X_out = X_out, X                                # the kernel leaves scan k's cloud in X_out
+        if inline:                                             # the Generators end where numpy's calls leave them
+            for g, state in zip(gens, rng):
+                _set_pcg64_state(g, state)
             if P:
                 cloud[:, k], cloud_modes[:, k] = np.swapaxes(X[:, :, spaced], 1, 2), modes[:, spaced]
         extras = {"mode_probabilities": mode_probability, "ess": ess, "weights_underflow": underflow, "nis": nis,

@@ -42,6 +42,8 @@ import numpy as np
 from llvmlite import ir
 from numba import njit, types
 from numba.extending import intrinsic
+from numba.np.random._constants import fi_float as _FI, ki_float as _KI, wi_float as _WI
+from numba.np.random._constants import ziggurat_nor_inv_r_f as _NOR_INV_R, ziggurat_nor_r_f as _NOR_R
 
 F32 = np.float32
 _JIT = dict(nogil=True, cache=True, error_model="numpy", boundscheck=False)
@@ -95,19 +97,19 @@ _EXP_LOW = F32(-87.0)
 _EXP_HIGH = F32(88.0)
 
 
-@njit(inline="always", **_JIT)
+@njit(forceinline=True, **_JIT)
 def rint32(x):
     """Round to the nearest integer, ties to even (as np.rint), for |x| < 2^22."""
     return (x + _ROUNDER) - _ROUNDER
 
 
-@njit(inline="always", **_JIT)
+@njit(forceinline=True, **_JIT)
 def wrap32(e):
     """float32 angle into [-pi, pi], as ``filters.particle.wrap``."""
     return e - _TWO_PI * rint32(e * _INV_TWO_PI)
 
 
-@njit(inline="always", **_JIT)
+@njit(forceinline=True, **_JIT)
 def atan2_32(y, x):
     """float32 atan2(y, x): Cephes atanf on [0, tan(pi/8)] after the octant reduction (< 2 ulp)."""
     ax, ay = abs(x), abs(y)
@@ -124,7 +126,7 @@ def atan2_32(y, x):
     return -r if y < _ZERO else r
 
 
-@njit(inline="always", **_JIT)
+@njit(forceinline=True, **_JIT)
 def exp32(x):
     """float32 exp (Cephes expf, < 2 ulp); 0 below -87 (the smallest normal float32)."""
     c = min(max(x, _EXP_LOW), _EXP_HIGH)
@@ -138,7 +140,7 @@ def exp32(x):
     return p * scale if x >= _EXP_LOW else _ZERO
 
 
-@njit(inline="always", **_JIT)
+@njit(forceinline=True, **_JIT)
 def log32(x):
     """float32 natural log of a positive normal number (Cephes logf, < 2 ulp)."""
     bits = _bits(x)
@@ -163,7 +165,7 @@ _C1 = 6.93145751953125e-1
 _C2 = 1.42860682030941723212e-6
 
 
-@njit(inline="always", **_JIT)
+@njit(forceinline=True, **_JIT)
 def exp64(x):
     """float64 exp of x <= 0 (Cephes exp); 0 below -708."""
     c = max(x, -708.0)
@@ -177,7 +179,7 @@ def exp64(x):
     return y * _pow2(n) if x >= -708.0 else 0.0
 
 
-@njit(inline="always", **_JIT)
+@njit(forceinline=True, **_JIT)
 def _pow2(n):
     """2.0 ** n for an integral float64 n in [-1022, 1023]."""
     return _from_bits64((np.int64(n) + np.int64(1023)) << np.int64(52))
@@ -194,10 +196,110 @@ def _from_bits64(typingctx, i):
 
 
 # --------------------------------------------------------------------------------------------
+# numpy's PCG64 and float32 normals, inline: the same numbers as Generator.random() and
+# Generator.standard_normal(dtype=float32) from the same state, at about a third of the cost
+# (numpy reaches the bit generator through a function pointer per number). Checked against numpy
+# on first use (``filters.particle._inline_draws_match``); the numpy calls are the fallback.
+# --------------------------------------------------------------------------------------------
+
+_MULT_HI = np.uint64(0x2360ED051FC65DA4)         # PCG64's 128-bit multiplier (XSL-RR 128/64)
+_MULT_LO = np.uint64(0x4385DF649FCCF645)
+_U0, _U1, _U8, _U11, _U32, _U58, _U63, _U64 = (np.uint64(v) for v in (0, 1, 8, 11, 32, 58, 63, 64))
+_LOW32 = np.uint64(0xFFFFFFFF)
+_TO_DOUBLE = 1.0 / 9007199254740992.0
+_TO_FLOAT = np.float32(1.0 / 16777216.0)
+
+
+@intrinsic
+def _mulhi64(typingctx, a, b):
+    """The high 64 bits of the 128-bit product of two uint64."""
+    if a != types.uint64 or b != types.uint64:
+        return None
+
+    def codegen(context, builder, signature, args):
+        wide = ir.IntType(128)
+        product = builder.mul(builder.zext(args[0], wide), builder.zext(args[1], wide))
+        return builder.trunc(builder.lshr(product, ir.Constant(wide, 64)), ir.IntType(64))
+    return types.uint64(types.uint64, types.uint64), codegen
+
+
+@njit(inline="always", **_JIT)
+def _next64(hi, lo, inc_hi, inc_lo):
+    """PCG64: state = state * multiplier + increment (mod 2^128), then the XSL-RR output of the
+    new state. Returns (output, hi, lo)."""
+    new_lo = lo * _MULT_LO
+    new_hi = _mulhi64(lo, _MULT_LO) + lo * _MULT_HI + hi * _MULT_LO
+    low = new_lo + inc_lo
+    new_hi = new_hi + inc_hi + (_U1 if low < new_lo else _U0)
+    value = new_hi ^ low
+    rot = new_hi >> _U58
+    return (value >> rot) | (value << ((_U64 - rot) & _U63)), new_hi, low
+
+
+@njit(inline="always", **_JIT)
+def _next32(hi, lo, inc_hi, inc_lo, has, buffered):
+    """numpy's pcg64_next32: the buffered upper half of the last 64-bit output, else a new one
+    (its lower half returned, its upper half kept). Returns (value, hi, lo, has, buffered)."""
+    if has:
+        return buffered, hi, lo, _U0, buffered
+    value, hi, lo = _next64(hi, lo, inc_hi, inc_lo)
+    return value & _LOW32, hi, lo, _U1, value >> _U32
+
+
+@njit(**_JIT)
+def _uniforms(state, out):
+    """Generator.random(out=...): (next64 >> 11) / 2^53 each; state (6,) uint64 updated."""
+    hi, lo, inc_hi, inc_lo = state[0], state[1], state[2], state[3]
+    for i in range(out.shape[0]):
+        value, hi, lo = _next64(hi, lo, inc_hi, inc_lo)
+        out[i] = (value >> _U11) * _TO_DOUBLE
+    state[0], state[1] = hi, lo
+
+
+@njit(**_JIT)
+def _normals(state, out):
+    """Generator.standard_normal(dtype=float32, out=...) on a flat float32 array: numpy's float32
+    ziggurat (the tables and the wedge and tail tests as numba's port of it); state updated."""
+    hi, lo, inc_hi, inc_lo, has, buffered = state[0], state[1], state[2], state[3], state[4], state[5]
+    for i in range(out.shape[0]):
+        while True:
+            r, hi, lo, has, buffered = _next32(hi, lo, inc_hi, inc_lo, has, buffered)
+            idx = np.int64(r & np.uint64(0xFF))
+            rabs = (r >> np.uint64(9)) & np.uint64(0x007FFFFF)
+            x = F32(F32(rabs) * _WI[idx])
+            if (r >> _U8) & _U1:
+                x = -x
+            if rabs < _KI[idx]:
+                break
+            if idx == 0:
+                while True:
+                    u, hi, lo, has, buffered = _next32(hi, lo, inc_hi, inc_lo, has, buffered)
+                    xx = F32(-_NOR_INV_R * np.log1p(F32(-F32(F32(u >> _U8) * _TO_FLOAT))))
+                    u, hi, lo, has, buffered = _next32(hi, lo, inc_hi, inc_lo, has, buffered)
+                    yy = F32(-np.log1p(F32(-F32(F32(u >> _U8) * _TO_FLOAT))))
+                    if F32(yy + yy) > F32(xx * xx):
+                        x = -F32(_NOR_R + xx) if (rabs >> _U8) & _U1 else F32(_NOR_R + xx)
+                        break
+                break
+            u, hi, lo, has, buffered = _next32(hi, lo, inc_hi, inc_lo, has, buffered)
+            if (_FI[idx - 1] - _FI[idx]) * F32(F32(u >> _U8) * _TO_FLOAT) + _FI[idx] < F32(np.exp(-F32(0.5) * x * x)):
+                break
+        out[i] = x
+    state[0], state[1], state[4], state[5] = hi, lo, has, buffered
+
+
+@njit(**_JIT)
+def _uniform(state):
+    one = np.empty(1)
+    _uniforms(state, one)
+    return one[0]
+
+
+# --------------------------------------------------------------------------------------------
 # The likelihood of one bearing
 # --------------------------------------------------------------------------------------------
 
-@njit(inline="always", **_JIT)
+@njit(forceinline=True, **_JIT)
 def _component(predicted, k, mixture):
     """float32 log p(z | predicted) of one component (``BearingLikelihood.log``), k its constants
     (``_constants``): the clutter mixture summed around the clutter term (one exp and a log), or
@@ -212,7 +314,7 @@ def _component(predicted, k, mixture):
     return value if received else _ZERO
 
 
-@njit(inline="always", **_JIT)
+@njit(forceinline=True, **_JIT)
 def _constants(lik, z32, received, c):
     """Component c's likelihood constants, its bearing and whether it was received, as scalars (a
     tuple): the particle loops then read no array but the particles'."""
@@ -229,7 +331,7 @@ NOMINAL_FACTOR, CLUTTER_FACTOR, DIFFERENCE, CLUTTER_SCALE, NOMINAL_SCALE, NOMINA
 
 @njit(**_JIT)
 def scan(X, X_out, modes, z, dt, log_tpm, tpm, lik, mixture, observer, a_m, sigma, gain, lw_h, auxiliary,
-         first_offsets, uniforms, noise, second_offsets, normals, variance, k,
+         first_offsets, uniforms, noise, second_offsets, normals, rng, draw, variance, k,
          states, covariances, mode_probability, ess, underflow, nis, nis_dof):
     """Scan ``k`` for every run r of the chunk. X (R, 20, N) float64: the resampled, regularised
     particles of scan k - 1, component-major (each state component's N values contiguous, so the
@@ -241,12 +343,23 @@ def scan(X, X_out, modes, z, dt, log_tpm, tpm, lik, mixture, observer, a_m, sigm
     noise std (target, buoys); gain (4,) Gamma's nonzero entries (g, g, T, T); lw_h.
     Random numbers (each run's own, drawn in the numpy loop's order): first_offsets (R,) the
     first stage's resampling offsets (AMMPF), uniforms (R, N) the SIR-MM's mode draws, noise
-    (R, N, 10) float32 process noise, second_offsets (R,), normals (R, N, 20) float32 Liu-West's.
-    variance (8,) the components' noise variances (NIS). Outputs at [r, k]: states, covariances,
+    (R, N, 10) float32 process noise, second_offsets (R,), normals (R, N, 20) float32 Liu-West's;
+    drawn here when ``draw`` from each run's PCG64 state rng (R, 6) uint64 (state high, low,
+    increment high, low, has_uint32, uinteger; updated), else given. variance (8,) the components' noise variances (NIS). Outputs at [r, k]: states, covariances,
     mode_probability, ess, underflow (|=), nis, nis_dof.
     """
     R = X.shape[0]
     for r in range(R):
+        if draw:                  # in filter_jump_markov's order: offset or uniforms, noise, offset, normals
+            state = rng[r]
+            if auxiliary:
+                first_offsets[r] = _uniform(state)
+            else:
+                _uniforms(state, uniforms[r])
+            _normals(state, noise[r].reshape(-1))
+            second_offsets[r] = _uniform(state)
+            if lw_h > 0:
+                _normals(state, normals[r].reshape(-1))
         out = _scan_run(X[r], X_out[r], modes[r], z[r], dt, log_tpm, tpm, lik, mixture, observer, a_m, sigma,
                         gain, lw_h, auxiliary, first_offsets[r], uniforms[r], noise[r], second_offsets[r],
                         normals[r], variance, states[r, k], covariances[r, k], mode_probability[r, k])
@@ -344,7 +457,7 @@ def _scan_run(X, X_out, modes, z, dt, log_tpm, tpm, lik, mixture, observer, a_m,
     return 1.0 / total, lost, nis, nis_dof
 
 
-@njit(inline="always", **_JIT)
+@njit(forceinline=True, **_JIT)
 def _sines(wt, series):
     """(sin wT, 1 - cos wT) of a turn; the Taylor series (float64 rounding for |wT| <= 0.25)
     when ``series``, else libm."""
@@ -371,7 +484,7 @@ def _turn_factors(X, a_m, dt, series, ta, tb):
             ta[i], tb[i] = _turn_ab(X[2, i], X[3, i], a_m, dt, False)
 
 
-@njit(inline="always", **_JIT)
+@njit(forceinline=True, **_JIT)
 def _turn_ab(vx, vy, a_m, dt, series):
     omega = a_m / max(math.sqrt(vx * vx + vy * vy), 0.5)
     s, one_minus_c = _sines(omega * dt, series)
@@ -417,13 +530,13 @@ def _first_stage_loop(X, ta, tb, z32, received, dt, ox, oy, lik, mixture, first)
         first[2, i] = _sum4(t02, t12, t22, t32) + buoy
 
 
-@njit(inline="always", **_JIT)
+@njit(forceinline=True, **_JIT)
 def _sum4(a, b, c, d):
     """float32 terms summed in float64 in order (np.sum(..., dtype=float64) over 4 components)."""
     return ((float(a) + float(b)) + float(c)) + float(d)
 
 
-@njit(inline="always", **_JIT)
+@njit(forceinline=True, **_JIT)
 def _first_stage_buoy(X, i, j, dt, tx, ty, shift, ox, oy, k_target, k_buoy, mixture):
     """Buoy j's part of the first stage: the three modes' target bearings' likelihoods and the
     buoy's own."""
@@ -523,14 +636,14 @@ def _second_stage_loop(X, z32, received, ox, oy, lik, mixture, log_likelihood):
         log_likelihood[i] = _sum4(t0, t1, t2, t3) + _sum4(b0, b1, b2, b3)
 
 
-@njit(inline="always", **_JIT)
+@njit(forceinline=True, **_JIT)
 def _second_stage_buoy(X, i, j, tx, ty, ox, oy, k_target, k_buoy, mixture):
     fx, fy = F32(X[4 + 4 * j, i]), F32(X[5 + 4 * j, i])
     return (_component(atan2_32(tx - fx, ty - fy), k_target, mixture),
             _component(atan2_32(fx - ox, fy - oy), k_buoy, mixture))
 
 
-@njit(inline="always", **_JIT)
+@njit(forceinline=True, **_JIT)
 def _bearing(X, i, c, ox, oy):
     """float32 bearing c of particle i: the target from buoy c (c < 4), buoy c - 4 from the observer."""
     j = c % 4

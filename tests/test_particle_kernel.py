@@ -111,3 +111,28 @@ def test_the_compiled_scan_is_cached_where_it_can_be_written_and_a_new_process_l
     out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, env=dict(os.environ, PYTHONPATH=str(ROOT)),
                          capture_output=True, text=True, check=True).stdout.split()
     assert (int(out[-2]), int(out[-1])) == (1, 0), out          # loaded, not compiled again
+
+
+def test_the_inline_draws_are_numpys_numbers_and_the_fallback_gives_the_same_results(monkeypatch):
+    """The kernel draws each run's numbers from its PCG64 state itself (numpy's algorithms: the
+    same numbers, the Generators left in the same state); with that switched off the Generators
+    draw them (the fallback if numpy ever changed them): the estimates are bit-identical."""
+    from filters import particle
+
+    assert particle._inline_draws_match()
+    _, reports = _reports(runs=3, duration=60.0, clutter=True)
+    for auxiliary in (True, False):
+        inline = MultipleModelParticleFilter(particles=120, auxiliary=auxiliary).run(reports)
+        monkeypatch.setattr(particle, "_inline_draws_match", lambda: False)
+        drawn = MultipleModelParticleFilter(particles=120, auxiliary=auxiliary).run(reports)
+        monkeypatch.undo()
+        np.testing.assert_array_equal(inline.state, drawn.state)
+        np.testing.assert_array_equal(inline.covariance, drawn.covariance)
+    g, copy = np.random.default_rng(7), np.random.default_rng(7)
+    state = particle._pcg64_state(copy)
+    out = np.empty(50_001, dtype=np.float32)
+    kernel._normals(state, out)
+    np.testing.assert_array_equal(out, g.standard_normal(50_001, dtype=np.float32))
+    assert kernel._uniform(state) == g.random()
+    particle._set_pcg64_state(copy, state)
+    assert copy.random() == g.random() and copy.standard_normal(dtype=np.float32) == g.standard_normal(dtype=np.float32)
