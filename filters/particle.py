@@ -32,10 +32,14 @@ SIR-MM: the bootstrap multiple-model filter (mode drawn from the transition matr
 the likelihood), the same resampling and regularisation. EKF: one CV model on the same 20 states,
 Joseph update on the received components, moment-matched variances in clutter (notes 6.4).
 
-Batching: particles are (runs, particles, state) arrays; there is no Python loop over runs,
-particles or modes inside a scan. Systematic resampling is vectorised over runs by offsetting each
-run's cumulative weights by its run index and searching all runs at once. Random numbers come
-from one generator per run (spawned from the seed), so run r's particles do not depend on R.
+Engines: by default (``engine="numba"``) each scan of a chunk of runs is one compiled pass over
+the particles (``filters.particle_kernel``: the numpy loop's arithmetic fused per particle, ~5x
+faster; benchmarks/bench_study004.py, benchmarks/particle_limits.md). ``engine="numpy"`` is the
+vectorised loop below, the reference: particles are (runs, particles, state) arrays; there is no
+Python loop over runs, particles or modes inside a scan. Systematic resampling is vectorised over
+runs by offsetting each run's cumulative weights by its run index and searching all runs at once.
+Random numbers come from one generator per run (spawned from the seed), so run r's particles do
+not depend on R; both engines draw the same numbers in the same order.
 """
 
 from __future__ import annotations

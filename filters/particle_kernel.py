@@ -2,36 +2,47 @@
 does a whole scan of the AMMPF or the SIR-MM for a chunk of runs, particle by particle, without
 the (runs x particles x modes x bearings) temporaries of the numpy loop.
 
-Per run and scan, fused: the first stage (three modes' predicted positions, the four buoys'
-bearings, the clutter-mixture likelihood; eq 16), the joint systematic resampling of (parent,
-mode), the propagation (eq 15), the second stage's bearings, likelihood and weights (eq 17), the
-NIS of the prediction, the output moments, the resampling and the Liu-West regularisation.
+Per run and scan, fused: drawing the run's random numbers, the first stage (three modes'
+predicted positions, the four buoys' bearings, the clutter-mixture likelihood; eq 16), the joint
+systematic resampling of (parent, mode), the propagation (eq 15), the second stage's bearings,
+likelihood and weights (eq 17), the NIS of the prediction, the output moments, the resampling
+and the Liu-West regularisation. Particles are component-major (20, N) inside, so every particle
+loop is straight-line code over contiguous rows and vectorises (AVX2/AVX-512).
 
 What is kept from the numpy loop (``filters.particle.filter_jump_markov`` with ``SonobuoyModel``,
 still there as the reference: ``engine="numpy"``):
 
-- the random numbers: drawn outside this kernel, by the same numpy Generator calls in the same
-  order per run (``filters.particle._draw_scan``), so a run's numbers do not depend on the batch;
+- the random numbers: each run's own Generator (PCG64), drawn in the same order with the same
+  algorithms (``_next64``, ``_normals``: numpy's PCG64 and float32 ziggurat), so the same
+  numbers bit for bit and a run's numbers do not depend on the batch; checked against numpy
+  once per process, with numpy's own calls as the fallback;
 - the float32/float64 split: positions, moments, weights, resampling and the Cholesky factor in
   float64; bearings, their residuals and the per-component likelihood in float32 (bearings of
   ~10 km differences keep ~1e-7 rad, far below the 1.5-15 deg noise), summed over components in
-  float64; the Liu-West jitter in float32 (it only perturbs), added to the float64 particles;
+  float64 in the same order; the Liu-West jitter in float32 (it only perturbs), added to the
+  float64 particles;
 - each run is computed on its own, in a fixed order, so results are bit-identical whatever the
   chunk of runs, the threads or the launcher.
 
 What differs, at rounding level: float32 atan2, exp and log are polynomial (Cephes' atanf,
-expf, logf: < 2 ulp) instead of numpy's SIMD library calls, so the loops vectorise; sums over
-particles are sequential instead of numpy's pairwise or BLAS order; the second resampling uses
-the normalised weights directly instead of exp(log(w) - max log w); systematic resampling
-searches each run's own cumulative weights (the numpy version offsets them by the run's index in
-the batch, which rounds them). A resampling decision can flip where a point falls within rounding
-of a boundary, so runs drift apart from the numpy loop's over hundreds of scans while staying the
-same filter (tests/test_particle_kernel.py compares one scan exactly and whole runs in statistics).
+expf, logf: < 2 ulp; float64 exp of the weights Cephes' exp, < 1 ulp) instead of numpy's SIMD
+library calls; the turns' sin and cos by their series (float64 rounding for |wT| <= 0.25, libm
+beyond); |v| as sqrt(vx^2 + vy^2), not hypot; sums over particles (moments, covariances in 4 x 4
+tiles) in vectorised partial sums instead of numpy's pairwise or BLAS order; the NIS moments in
+float64 instead of float32; the second resampling uses the normalised weights directly instead
+of exp(log(w) - max log w); systematic resampling searches each run's own cumulative weights (the
+numpy loop offsets them by the run's index in the batch, which rounds them). One scan agrees
+with the numpy loop's to ~4e-7 relative (tests/test_particle_kernel.py). A resampling decision
+flips where a point falls within rounding of a boundary, so whole runs drift apart from the numpy
+loop's over hundreds of scans while staying the same filter (the reproduction targets hold:
+tests/test_reproduction_004.py, benchmarks/particle_limits.md).
 
 Compiled with ``cache=True``: numba writes the machine code beside this file (``__pycache__``,
-or a user cache folder when that is read-only, or ``NUMBA_CACHE_DIR``), keyed by this file's
-modification time and size, the argument types, the processor and numba's version; every jitted
-function of the kernel lives in this one file, so editing any of it recompiles.
+else a user cache folder when that is read-only, or ``NUMBA_CACHE_DIR``), keyed by this file's
+modification time and size, the argument types, the processor and numba's version. Every jitted
+function of the kernel lives in this one file (numba does not track edits of other files), so
+editing any of it recompiles. The helpers are inlined by LLVM (``forceinline``): numba's own
+inliner re-types each inlined body and made the first compilation ~128 s instead of ~23 s.
 """
 
 from __future__ import annotations
