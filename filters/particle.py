@@ -341,25 +341,36 @@ def _set_pcg64_state(g: np.random.Generator, s: np.ndarray) -> None:
 @functools.cache
 def _inline_draws_match() -> bool:
     """Whether the kernel's inline PCG64 and float32 ziggurat give exactly this numpy's numbers
-    (Generator.random, standard_normal(dtype=float32)) and leave the same state; checked once per
-    process on ~100 000 numbers (thousands of the ziggurat's wedge and tail cases). If numpy ever
-    changes them, the filters fall back to drawing with the Generators (slower, same results as
-    that numpy's)."""
+    (Generator.random, standard_normal(dtype=float32)) and leave the same state: checked once per
+    process through the kernel's own scan (no second compiled entry point to load) on one scan of
+    3000 particles, AMMPF and SIR-MM order (~180 000 numbers: thousands of the ziggurat's wedge
+    and hundreds of its tail cases). If numpy ever changes them, the filters fall back to drawing
+    with the Generators (slower, same results as that numpy's)."""
     from filters import particle_kernel as kernel
 
+    N, M = 3000, 3
     ok = True
-    for seed in (0, 20240517):
-        reference, copy = np.random.default_rng(seed), np.random.default_rng(seed)
-        state = _pcg64_state(copy)
-        for size in (1, 10_001, 40_000):
-            ok &= reference.random() == kernel._uniform(state)
-            normals = np.empty(size, dtype=np.float32)
-            kernel._normals(state, normals)
-            ok &= bool(np.array_equal(reference.standard_normal(size, dtype=np.float32), normals))
-            uniforms = np.empty(size)
-            kernel._uniforms(state, uniforms)
-            ok &= bool(np.array_equal(reference.random(size), uniforms))
-        ok &= bool(np.array_equal(_pcg64_state(reference), state))
+    for seed, auxiliary in ((0, True), (20240517, False)):
+        reference = np.random.default_rng(seed)
+        rng = _pcg64_state(np.random.default_rng(seed))[None].copy()
+        draws = _ScanDraws(1, N, auxiliary, True)
+        X = np.zeros((1, 20, N))
+        X[0, 2] = 1.0
+        tpm = np.full((M, M), 1.0 / M)
+        states, covariances = np.zeros((1, 2, 20)), np.zeros((1, 2, 20, 20))
+        kernel.scan(X, np.empty_like(X), np.zeros((1, N), dtype=np.int64), np.ones((1, 8)), 5.0, np.log(tpm), tpm,
+                    np.ones((6, 8), dtype=np.float32), True, np.array([0.0, -1.0]), 0.01, np.ones(5), np.ones(4), 0.3,
+                    auxiliary, draws.first_offsets, draws.uniforms, draws.noise, draws.second_offsets, draws.normals,
+                    rng, True, np.ones(8), 1, states, covariances, np.zeros((1, 2, M)), np.zeros((1, 2)),
+                    np.zeros((1, 2), dtype=bool), np.zeros((1, 2)), np.zeros((1, 2)))
+        if auxiliary:
+            ok &= reference.random() == draws.first_offsets[0]
+        else:
+            ok &= bool(np.array_equal(reference.random(N), draws.uniforms[0]))
+        ok &= bool(np.array_equal(reference.standard_normal((N, 10), dtype=np.float32), draws.noise[0]))
+        ok &= reference.random() == draws.second_offsets[0]
+        ok &= bool(np.array_equal(reference.standard_normal((N, 20), dtype=np.float32), draws.normals[0]))
+        ok &= bool(np.array_equal(_pcg64_state(reference), rng[0]))
     if not ok:
         warnings.warn("filters.particle: the compiled kernel's PCG64 draws differ from this numpy's; the particle "
                       "filters draw with numpy's Generators instead (slower, same results)", RuntimeWarning)

@@ -38,10 +38,13 @@ loop's over hundreds of scans while staying the same filter (the reproduction ta
 tests/test_reproduction_004.py, benchmarks/particle_limits.md).
 
 Compiled with ``cache=True``: numba writes the machine code beside this file (``__pycache__``,
-else a user cache folder when that is read-only, or ``NUMBA_CACHE_DIR``), keyed by this file's
-modification time and size, the argument types, the processor and numba's version. Every jitted
-function of the kernel lives in this one file (numba does not track edits of other files), so
-editing any of it recompiles. The helpers are inlined by LLVM (``forceinline``): numba's own
+else a user cache folder when that is read-only, or ``NUMBA_CACHE_DIR``), one file per function
+(named by its line), valid while the SHA-256 of this file's content is the one it was built
+from, keyed by the argument types, the processor (target triple, CPU name and features), the
+function's bytecode and numba's version. Every jitted function of the kernel lives in this one
+file (numba does not track edits of other files), so editing any of it recompiles. The
+Generators' draws are checked at run time instead (``filters.particle._inline_draws_match``): a
+different numpy changes no compiled code. The helpers are inlined by LLVM (``forceinline``): numba's own
 inliner re-types each inlined body and made the first compilation ~128 s instead of ~23 s.
 """
 

@@ -103,6 +103,10 @@ def test_results_do_not_depend_on_chunks_threads_or_batch(auxiliary, lw_h):
 def test_the_compiled_scan_is_cached_where_it_can_be_written_and_a_new_process_loads_it():
     _, reports = _reports(runs=1, duration=10.0)
     MultipleModelParticleFilter(particles=50).run(reports)
+    MultipleModelParticleFilter(particles=50, auxiliary=False, lw_h=0.0).run(reports)
+    # one compiled version serves both filters, the draws' check and any size: a second would be
+    # a second compilation (~25 s) in every new process's cache
+    assert len(kernel.scan.signatures) == 1, kernel.scan.signatures
     path = kernel.scan.stats.cache_path
     assert os.access(path, os.W_OK) and any(name.startswith("particle_kernel.scan-") for name in os.listdir(path))
     code = ("from tests.test_particle import _reports\n"
