@@ -524,20 +524,21 @@ class MultipleModelParticleFilter(_ModelParameters):
 
     def _run_chunk(self, all_reports: BuoyReports, all_gens, runs: slice, progress: Progress = SILENT):
         reports = all_reports.select(range(runs.start, runs.stop))
-        if self.engine == "numba":
-            return self._compiled_chunk(reports, all_gens[runs])
-        model = SonobuoyModel(self.max_acceleration, self.target_sigma, self.buoy_sigma, self.noise_gain,
-                              reports.likelihood(), np.asarray(reports.observer, dtype=float))
         # each scan of this chunk is its share of the runs' scan: the scans done over all chunks
         share = (runs.stop - runs.start) / all_reports.z.shape[0]
         on_scan = None if progress is SILENT else (lambda: progress.advance(share))
+        if self.engine == "numba":
+            return self._compiled_chunk(reports, all_gens[runs], on_scan)
+        model = SonobuoyModel(self.max_acceleration, self.target_sigma, self.buoy_sigma, self.noise_gain,
+                              reports.likelihood(), np.asarray(reports.observer, dtype=float))
         return filter_jump_markov(model, self.tpm, reports.time, reports.z, reports.prior_mean, reports.prior_std,
                                   all_gens[runs], self.particles, self.auxiliary, self.lw_h, self.snapshot_particles,
                                   on_scan)
 
-    def _compiled_chunk(self, reports: BuoyReports, gens):
+    def _compiled_chunk(self, reports: BuoyReports, gens, on_scan=None):
         """``filter_jump_markov`` for ``SonobuoyModel``, a scan at a time through the compiled kernel
-        (``filters.particle_kernel.scan``): the same start, random numbers, outputs and extras."""
+        (``filters.particle_kernel.scan``): the same start, random numbers, outputs and extras
+        (``on_scan()`` after each scan, as there)."""
         from filters import particle_kernel as kernel
 
         R, K = reports.z.shape[:2]
@@ -587,11 +588,13 @@ class MultipleModelParticleFilter(_ModelParameters):
                         draws.second_offsets, draws.normals, rng, inline, variance, k, states, covariances,
                         mode_probability, ess, underflow, nis, nis_dof)
             X, X_out = X_out, X                                # the kernel leaves scan k's cloud in X_out
+            if P:
+                cloud[:, k], cloud_modes[:, k] = np.swapaxes(X[:, :, spaced], 1, 2), modes[:, spaced]
+            if on_scan is not None:
+                on_scan()
         if inline:                                             # the Generators end where numpy's calls leave them
             for g, state in zip(gens, rng):
                 _set_pcg64_state(g, state)
-            if P:
-                cloud[:, k], cloud_modes[:, k] = np.swapaxes(X[:, :, spaced], 1, 2), modes[:, spaced]
         extras = {"mode_probabilities": mode_probability, "ess": ess, "weights_underflow": underflow, "nis": nis,
                   "nis_dof": nis_dof}
         if P:

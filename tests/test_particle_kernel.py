@@ -68,7 +68,8 @@ def test_a_scan_equals_the_numpy_loop_to_float32_rounding(auxiliary, lw_h, clutt
     by up to 2 rad a scan: the turns' sines from libm instead of the series."""
     _, reports = _reports(runs=4, duration=10.0, clutter=clutter)
     fast, slow = (MultipleModelParticleFilter(particles=300, auxiliary=auxiliary, lw_h=lw_h, max_acceleration=a_m,
-                                              engine=engine).run(reports) for engine in ("numba", "numpy"))
+                                              snapshot_particles=20, engine=engine).run(reports)
+                  for engine in ("numba", "numpy"))
     spread = np.sqrt(np.diagonal(slow.covariance[:, 1], axis1=-2, axis2=-1))
     assert np.max(np.abs(fast.state[:, 1] - slow.state[:, 1]) / spread) < 1e-5           # measured ~4e-7
     scale = spread[:, :, None] * spread[:, None, :]                  # covariances in correlation units
@@ -78,6 +79,11 @@ def test_a_scan_equals_the_numpy_loop_to_float32_rounding(auxiliary, lw_h, clutt
                                atol=1e-6)
     np.testing.assert_allclose(fast.extras["nis"][:, 1], slow.extras["nis"][:, 1], rtol=1e-5)
     np.testing.assert_array_equal(fast.extras["nis_dof"], slow.extras["nis_dof"])
+    # the recorded particle clouds: every scan's (a bug once kept only the first and the last)
+    assert np.isfinite(fast.extras["particles"]).all() and (fast.extras["particle_modes"] >= 0).all()
+    np.testing.assert_array_equal(fast.extras["particle_modes"][:, 1], slow.extras["particle_modes"][:, 1])
+    cloud_error = np.abs(fast.extras["particles"][:, 1] - slow.extras["particles"][:, 1]) / spread[:, None, :]
+    assert np.max(cloud_error) < 1e-5
 
 
 @pytest.mark.parametrize("auxiliary, lw_h", [(True, 0.3), (False, 0.0)])
