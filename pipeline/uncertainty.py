@@ -240,29 +240,26 @@ class SortedItems:
     are sorted once; a resample weighs each value by how often its run is drawn, and the median is
     read where the cumulative weight passes the middle rank (the mean of the two middle values for
     an even count), as np.nanmedian of the drawn values gives it. Gathering the drawn values and
-    partitioning them cost a 50-run particle-filter job over a minute per variant."""
+    partitioning them cost a 50-run particle-filter job over a minute per variant; the weighing is
+    one compiled pass (``pipeline.median_kernel``)."""
 
     def __init__(self, values: np.ndarray) -> None:
         items = values if values.ndim == 2 else np.moveaxis(values, 2, 1).reshape(-1, values.shape[1])
         runs = values.shape[0]
         members = 1 if values.ndim == 2 else values.shape[2]
-        self.run_of_item = np.repeat(np.arange(runs), members)                 # (I,) item -> its run
+        run_of_item = np.repeat(np.arange(runs), members)                      # (I,) item -> its run
         order = np.argsort(np.where(np.isnan(items), np.inf, items), axis=0, kind="stable")   # (I, C)
-        self.values = np.take_along_axis(items, order, axis=0)                  # NaN last
-        self.runs = self.run_of_item[order]                                     # (I, C)
+        # step-major (C, I): each step's items contiguous for the kernel's walk
+        self.values = np.ascontiguousarray(np.take_along_axis(items, order, axis=0).T)   # NaN last
+        self.runs = np.ascontiguousarray(run_of_item[order].T)
         self.valid = np.isfinite(self.values)
 
     def median(self, counts: np.ndarray) -> np.ndarray:
         """(B, C) the median of each resample (``counts`` (B, R): draws per run); NaN where none."""
-        weight = counts[:, self.runs] * self.valid                              # (B, I, C)
-        cumulative = np.cumsum(weight, axis=1)
-        n = cumulative[:, -1, :]                                                # (B, C) drawn values
-        lower = np.argmax(cumulative >= ((n - 1) // 2 + 1)[:, None, :], axis=1)     # 1-based middle ranks
-        upper = np.argmax(cumulative >= (n // 2 + 1)[:, None, :], axis=1)
-        step = np.arange(self.values.shape[1])
-        with np.errstate(invalid="ignore"):
-            middle = 0.5 * (self.values[lower, step] + self.values[upper, step])
-        return np.where(n > 0, middle, np.nan)
+        from pipeline.median_kernel import resampled_medians       # numba: only a median metric needs it
+        out = np.empty((counts.shape[0], self.values.shape[0]))
+        resampled_medians(self.values, self.runs, self.valid, np.ascontiguousarray(counts, dtype=np.float64), out)
+        return out
 
 
 def nanmedian_last(values: np.ndarray) -> np.ndarray:
