@@ -126,9 +126,11 @@ def estimate_to_frame(est: TrackEstimate, state_names: tuple[str, ...], compact_
     run, step, target = run_step_grid(R, K, 1)
     rows = R * K
     if compact_covariance:
+        from pipeline.kernels import pack_upper          # numba: only a packed covariance needs it
         upper = np.triu_indices(n)
-        covariance = array_column("P_upper", est.covariance[..., upper[0], upper[1]], rows).cast(
-            pl.Array(pl.Float32, upper[0].size))
+        packed = np.empty((rows, upper[0].size), dtype=np.float32)
+        pack_upper(np.ascontiguousarray(est.covariance).reshape(rows, n, n), upper[0], upper[1], packed)
+        covariance = pl.Series("P_upper", packed, dtype=pl.Array(pl.Float32, upper[0].size))
     else:
         covariance = array_column("P", est.covariance, rows)
     cols = [pl.Series("run", run), pl.Series("step", step), pl.Series("time", est.time[step]),
@@ -152,11 +154,11 @@ def estimate_from_frame(df: pl.DataFrame, meta: Mapping[str, str]) -> TrackEstim
     extras = {k: _column_array(df, k, (R, K, *v["shape"])).astype(v["dtype"]) for k, v in names["extras"].items()}
     seconds = float(json.loads(meta[META_UNITS]).get("compute_seconds", "nan"))
     if "P_upper" in df.columns:
+        from pipeline.kernels import unpack_upper        # numba: only a packed covariance needs it
         upper = np.triu_indices(n)
-        packed = _column_array(df, "P_upper", (R, K, upper[0].size)).astype(np.float64)
         covariance = np.empty((R, K, n, n))
-        covariance[..., upper[0], upper[1]] = packed
-        covariance[..., upper[1], upper[0]] = packed
+        unpack_upper(_column_array(df, "P_upper", (R * K, upper[0].size)), upper[0], upper[1],
+                     covariance.reshape(R * K, n, n))
     else:
         covariance = _column_array(df, "P", (R, K, n, n))
     return TrackEstimate(time, _column_array(df, "x", (R, K, n)), covariance, extras, seconds)

@@ -59,6 +59,11 @@ from pipeline.schemas import META_TABLE, META_VERSION, SCHEMA_VERSION
 
 META_KEY = "mtt.cache_key"
 META_CHECKSUM = "mtt.content_sha256"
+# Every table's Parquet compression. lz4 over Parquet's usual zstd: the tables are mostly float64
+# states and covariances, which no codec shrinks much; on study 003's 100-run estimates zstd wrote
+# 126 MB in 1.49 s, lz4 139 MB in 0.61 s (ADS-B's: 44 MB in 1.01 s against 51 MB in 0.20 s), and
+# lz4 reads them back faster too. The cache and the run folders pay 10-16 % more disk for it.
+COMPRESSION = "lz4"
 log = logging.getLogger("pipeline.store")
 
 
@@ -253,7 +258,7 @@ def atomic_write_parquet(df: pl.DataFrame, path: Path, metadata: Mapping[str, st
     """Write ``df`` atomically with ``metadata`` and the content checksum of both (``content_checksum``)."""
     metadata = {str(k): str(v) for k, v in (metadata or {}).items()}
     metadata[META_CHECKSUM] = content_checksum(df, metadata)
-    _atomic_write(path, lambda f: df.write_parquet(f, metadata=metadata), locked=locked)
+    _atomic_write(path, lambda f: df.write_parquet(f, compression=COMPRESSION, metadata=metadata), locked=locked)
 
 
 def atomic_write_bytes(data: bytes, path: Path) -> None:
@@ -284,7 +289,7 @@ class TableStream:
         table = df.to_arrow()
         try:
             if self.writer is None:
-                self.writer = pq.ParquetWriter(self.tmp, table.schema, compression="zstd")
+                self.writer = pq.ParquetWriter(self.tmp, table.schema, compression=COMPRESSION)
             self.writer.write_table(table)
         except OSError as exc:
             self.abort()

@@ -241,7 +241,7 @@ class SortedItems:
     read where the cumulative weight passes the middle rank (the mean of the two middle values for
     an even count), as np.nanmedian of the drawn values gives it. Gathering the drawn values and
     partitioning them cost a 50-run particle-filter job over a minute per variant; the weighing is
-    one compiled pass (``pipeline.median_kernel``)."""
+    one compiled pass (``pipeline.kernels``)."""
 
     def __init__(self, values: np.ndarray) -> None:
         items = values if values.ndim == 2 else np.moveaxis(values, 2, 1).reshape(-1, values.shape[1])
@@ -256,7 +256,7 @@ class SortedItems:
 
     def median(self, counts: np.ndarray) -> np.ndarray:
         """(B, C) the median of each resample (``counts`` (B, R): draws per run); NaN where none."""
-        from pipeline.median_kernel import resampled_medians       # numba: only a median metric needs it
+        from pipeline.kernels import resampled_medians       # numba: only a median metric needs it
         out = np.empty((counts.shape[0], self.values.shape[0]))
         resampled_medians(self.values, self.runs, self.valid, np.ascontiguousarray(counts, dtype=np.float64), out)
         return out

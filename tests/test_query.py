@@ -324,7 +324,7 @@ def test_damaged_data_pages_skipped_with_warning(root, capsys):
     rg = pq.ParquetFile(path).metadata.row_group(0)
     chunk = next(rg.column(i) for i in range(rg.num_columns) if rg.column(i).path_in_schema == "series")
     raw = bytearray(path.read_bytes())
-    start = chunk.data_page_offset                   # damage the page header (zstd data
+    start = chunk.data_page_offset                   # damage the page header (compressed data
     raw[start:start + 16] = bytes(b ^ 0xFF for b in raw[start:start + 16])  # has no checksum)
     path.write_bytes(bytes(raw))
     # COUNT(*)/COUNT(col) are answered from footer statistics; reading the values hits the damage
