@@ -51,3 +51,24 @@ def test_the_cache_key_changes_with_the_code_that_produces_the_output(monkeypatc
     from pipeline import fingerprint
     monkeypatch.setattr(fingerprint, "source_fingerprint", lambda modules: "edited-filter")
     assert store.stage_key("track", {"filter": {"name": "B"}}, ("abc",)) != key
+
+
+@pytest.mark.parametrize("n", [1, 6, 20])
+def test_a_packed_covariance_is_its_float32_upper_triangle_and_unpacks_symmetric(n):
+    """estimate_to_frame(compact_covariance=True): P_upper holds float32(P[i, j]) for i <= j, row-major;
+    estimate_from_frame gives back the symmetric float64 matrix of those values (NaN kept)."""
+    from filters.base import TrackEstimate
+    rng = np.random.default_rng(n)
+    a = rng.normal(size=(3, 5, n, n))
+    covariance = a @ np.swapaxes(a, -1, -2) * 1e3
+    covariance[1, 2] = np.nan
+    est = TrackEstimate(np.arange(5.0), rng.normal(size=(3, 5, n)), covariance, {}, 0.0)
+    df, meta = schemas.estimate_to_frame(est, tuple(f"s{i}" for i in range(n)), compact_covariance=True)
+    upper = np.triu_indices(n)
+    packed = df["P_upper"].to_numpy().reshape(3, 5, -1)
+    assert packed.dtype == np.float32
+    np.testing.assert_array_equal(packed, covariance[..., upper[0], upper[1]].astype(np.float32))
+    back = schemas.estimate_from_frame(df, meta).covariance
+    expected = covariance.astype(np.float32).astype(np.float64)
+    np.testing.assert_array_equal(back[..., upper[0], upper[1]], expected[..., upper[0], upper[1]])
+    np.testing.assert_array_equal(back, np.swapaxes(back, -1, -2))
