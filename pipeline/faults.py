@@ -55,34 +55,20 @@ def fault_flags(state: np.ndarray, covariance: np.ndarray, checks: FaultChecks =
     """
     state = np.asarray(state, dtype=float)
     covariance = np.asarray(covariance, dtype=float)
-    # A filter that does not estimate some components at a step (study 003's KF + MGEKF runs a
-    # 4-state KF while the sonar is active: no acceleration) leaves exactly those NaN: in the state
-    # and in their covariance rows and columns, with the rest finite. That is a reduced estimate,
-    # checked on its finite block; a numerical fault spreads NaN through the whole covariance.
-    estimated = np.isfinite(state)
-    both = estimated[..., :, None] & estimated[..., None, :]
-    reduced = (estimated.any(axis=-1) & ~estimated.all(axis=-1)
-               & np.where(both, np.isfinite(covariance), True).all(axis=(-1, -2))
-               & np.where(both, True, np.isnan(covariance)).all(axis=(-1, -2)))
-    finite_state = estimated.all(axis=-1) | reduced
-    finite = finite_state & np.where(both, np.isfinite(covariance), True).all(axis=(-1, -2))
+    finite_state, finite, asymmetric, not_positive_definite = _matrix_checks(state, covariance,
+                                                                             checks.symmetry_tolerance)
     # a run's rows before its first estimate are NaN by design (no track yet)
     started = np.logical_or.accumulate(finite_state, axis=1)
     flags = np.zeros(finite.shape, dtype=np.uint8)
     flags |= np.where(started & ~finite, FAULTS["nonfinite"], 0).astype(np.uint8)
-
-    eye = np.broadcast_to(np.eye(covariance.shape[-1], dtype=bool), covariance.shape)
-    P = np.where(finite[..., None, None] & both, covariance, np.where(eye, 1.0, 0.0))
-    scale = np.abs(P).max(axis=(-1, -2))
-    asymmetry = np.abs(P - np.swapaxes(P, -1, -2)).max(axis=(-1, -2))
-    flags |= np.where(finite & (asymmetry > checks.symmetry_tolerance * scale), FAULTS["asymmetric"], 0).astype(np.uint8)
-    flags |= np.where(finite & ~_positive_definite(0.5 * (P + np.swapaxes(P, -1, -2))),
-                      FAULTS["not_positive_definite"], 0).astype(np.uint8)
+    flags |= np.where(asymmetric, FAULTS["asymmetric"], 0).astype(np.uint8)
+    flags |= np.where(not_positive_definite, FAULTS["not_positive_definite"], 0).astype(np.uint8)
 
     if checks.nees_bound is not None and error is not None:
+        estimated, both = _estimated(state)
         e = np.where(finite[..., None] & estimated, np.asarray(error, dtype=float), 0.0)
         with np.errstate(all="ignore"):
-            value = nees(e, P)
+            value = nees(e, _checked_matrices(covariance, finite, both))
         flags |= np.where(finite & ~(value <= checks.nees_bound), FAULTS["nees_above_bound"], 0).astype(np.uint8)
     if weights_underflow is not None:
         flags |= np.where(np.asarray(weights_underflow, dtype=bool), FAULTS["weights_underflow"], 0).astype(np.uint8)
@@ -92,6 +78,57 @@ def fault_flags(state: np.ndarray, covariance: np.ndarray, checks: FaultChecks =
     never = ~finite_state.reshape(finite_state.shape[0], -1).any(axis=1)
     flags |= np.where(never[:, None], FAULTS["never_finite"], 0).astype(np.uint8)
     return flags
+
+
+# Above this many covariance entries the checks run compiled (pipeline.kernels.covariance_checks):
+# numpy's version makes ~15 passes over full-size temporaries and one LAPACK call per matrix, 7 s
+# and ~1.5 GB for a 100-run, 10 001-step, 6-state estimate; below it numpy is quick and a job
+# does not pay numba's import and first call (~1 s).
+COMPILED_ENTRIES = 4_000_000
+
+
+def _matrix_checks(state: np.ndarray, covariance: np.ndarray, tolerance: float
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Per matrix (the leading axes): whether the state is estimated (all components, or a reduced
+    estimate), whether state and covariance are finite, asymmetric beyond ``tolerance`` x max |P|,
+    and not positive definite (no Cholesky factor of (P + P')/2), the last two only where finite.
+
+    A filter that does not estimate some components at a step (study 003's KF + MGEKF runs a
+    4-state KF while the sonar is active: no acceleration) leaves exactly those NaN: in the state
+    and in their covariance rows and columns, with the rest finite. That is a reduced estimate,
+    checked on its finite block; a numerical fault spreads NaN through the whole covariance."""
+    if covariance.size >= COMPILED_ENTRIES:
+        from pipeline.kernels import covariance_checks     # numba: only large estimates pay its start
+        n = state.shape[-1]
+        flat_state = np.ascontiguousarray(state).reshape(-1, n)
+        out = np.empty((4, flat_state.shape[0]), dtype=np.bool_)
+        covariance_checks(flat_state, np.ascontiguousarray(covariance).reshape(-1, n, n), float(tolerance),
+                          out[0], out[1], out[2], out[3])
+        return tuple(row.reshape(state.shape[:-1]) for row in out)
+    estimated, both = _estimated(state)
+    reduced = (estimated.any(axis=-1) & ~estimated.all(axis=-1)
+               & np.where(both, np.isfinite(covariance), True).all(axis=(-1, -2))
+               & np.where(both, True, np.isnan(covariance)).all(axis=(-1, -2)))
+    finite_state = estimated.all(axis=-1) | reduced
+    finite = finite_state & np.where(both, np.isfinite(covariance), True).all(axis=(-1, -2))
+    P = _checked_matrices(covariance, finite, both)
+    scale = np.abs(P).max(axis=(-1, -2))
+    asymmetry = np.abs(P - np.swapaxes(P, -1, -2)).max(axis=(-1, -2))
+    asymmetric = finite & (asymmetry > tolerance * scale)
+    not_positive_definite = finite & ~_positive_definite(0.5 * (P + np.swapaxes(P, -1, -2)))
+    return finite_state, finite, asymmetric, not_positive_definite
+
+
+def _estimated(state: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The estimated components (finite state entries) and the covariance entries between two of them."""
+    estimated = np.isfinite(state)
+    return estimated, estimated[..., :, None] & estimated[..., None, :]
+
+
+def _checked_matrices(covariance: np.ndarray, finite: np.ndarray, both: np.ndarray) -> np.ndarray:
+    """The matrices checked: the estimated block of a finite covariance, the identity elsewhere."""
+    eye = np.broadcast_to(np.eye(covariance.shape[-1], dtype=bool), covariance.shape)
+    return np.where(finite[..., None, None] & both, covariance, np.where(eye, 1.0, 0.0))
 
 
 def _positive_definite(P: np.ndarray) -> np.ndarray:

@@ -9,6 +9,14 @@ import pytest
 from pipeline.faults import FAULTS, FaultChecks, describe, fault_flags, fault_summary
 
 
+@pytest.fixture(params=["numpy", "compiled"])
+def checks_path(request, monkeypatch):
+    """Both ways of checking the matrices (pipeline.faults.COMPILED_ENTRIES decides by size)."""
+    from pipeline import faults
+    monkeypatch.setattr(faults, "COMPILED_ENTRIES", 0 if request.param == "compiled" else 10**18)
+    return request.param
+
+
 def healthy(R=5, K=8, n=4, seed=0):
     rng = np.random.default_rng(seed)
     A = rng.standard_normal((R, K, n, n))
@@ -19,14 +27,14 @@ def healthy(R=5, K=8, n=4, seed=0):
     return x, P
 
 
-def test_a_healthy_estimate_has_no_flag():
+def test_a_healthy_estimate_has_no_flag(checks_path):
     x, P = healthy()
     assert not fault_flags(x, P, FaultChecks(nees_bound=1e6), error=np.nan_to_num(x)).any()
 
 
 @pytest.mark.parametrize("fault", ["nonfinite_state", "inf_covariance", "asymmetric", "not_positive_definite",
                                    "nees_above_bound", "weights_underflow"])
-def test_each_injected_fault_is_flagged_at_its_run_and_step_only(fault):
+def test_each_injected_fault_is_flagged_at_its_run_and_step_only(fault, checks_path):
     x, P = healthy()
     error = np.nan_to_num(x.copy())
     underflow = np.zeros(x.shape[:2], dtype=bool)
@@ -52,7 +60,7 @@ def test_each_injected_fault_is_flagged_at_its_run_and_step_only(fault):
     assert summary["diverged_runs"] == 1 and summary[f"fault_runs_{expected}"] == 1
 
 
-def test_a_reduced_state_is_not_a_fault_but_a_nan_inside_it_is():
+def test_a_reduced_state_is_not_a_fault_but_a_nan_inside_it_is(checks_path):
     """Components a filter does not estimate at a step (NaN in the state and in their covariance rows
     and columns, the rest finite: study 003's KF + MGEKF while active) are not flagged; a NaN that
     reaches the estimated block is."""
@@ -68,13 +76,52 @@ def test_a_reduced_state_is_not_a_fault_but_a_nan_inside_it_is():
     assert describe(int(flags[0, 2])) == ["nonfinite"]
 
 
-def test_per_target_flags_reduce_to_the_step():
+def test_per_target_flags_reduce_to_the_step(checks_path):
     x, P = healthy(R=2, K=3, n=2)
     x = np.repeat(x[:, :, None], 3, axis=2)
     P = np.repeat(P[:, :, None], 3, axis=2)
     P[1, 2, 2] = np.diag([1.0, -1.0])
     flags = fault_flags(x, P)
     assert flags.shape == (2, 3) and flags[1, 2] == FAULTS["not_positive_definite"] and flags.sum() == flags[1, 2]
+
+
+def test_the_compiled_checks_decide_as_numpys_on_a_mixed_batch(monkeypatch):
+    """Healthy, asymmetric (above and below the tolerance), indefinite, singular, NaN/inf, reduced and
+    not-yet-started matrices, over targets too: the compiled pass flags what numpy's does."""
+    from pipeline import faults
+    rng = np.random.default_rng(7)
+    x, P = healthy(R=6, K=40, n=6, seed=3)
+    x = np.repeat(x[:, :, None], 2, axis=2)
+    P = np.repeat(P[:, :, None], 2, axis=2)
+    cells = [(r, k, t) for r in range(6) for k in range(1, 40) for t in range(2)]
+    picks = rng.permutation(len(cells))[:120]
+    for kind, index in zip(np.arange(120) % 8, picks):
+        r, k, t = cells[index]
+        if kind == 0:
+            P[r, k, t, 0, 3] += 1e-3 * np.abs(P[r, k, t]).max()
+        elif kind == 1:
+            P[r, k, t, 0, 3] += 1e-12 * np.abs(P[r, k, t]).max()       # within the tolerance
+        elif kind == 2:
+            P[r, k, t] = np.diag([1.0, 2.0, -1e-3, 1.0, 1.0, 1.0])
+        elif kind == 3:
+            P[r, k, t] = np.diag([1.0, 1.0, 0.0, 1.0, 1.0, 1.0])           # singular (a zero pivot)
+        elif kind == 4:
+            P[r, k, t, 2, 2] = np.inf
+        elif kind == 5:
+            x[r, k, t, 4:] = np.nan
+            P[r, k, t, 4:, :] = P[r, k, t, :, 4:] = np.nan              # a reduced estimate
+        elif kind == 6:
+            x[r, k, t, 1] = np.nan
+        else:
+            P[r, k, t] = -P[r, k, t]
+    x[5, :] = np.nan                                                     # a run that never starts
+    P[5, :] = np.nan
+    results = {}
+    for path, threshold in (("numpy", 10**18), ("compiled", 0)):
+        monkeypatch.setattr(faults, "COMPILED_ENTRIES", threshold)
+        results[path] = fault_flags(x, P, FaultChecks(nees_bound=50.0), error=np.nan_to_num(x))
+    np.testing.assert_array_equal(results["compiled"], results["numpy"])
+    assert len(set(np.unique(results["numpy"]))) >= 5                    # the mixture reached several bits
 
 
 def test_bad_thresholds_are_refused_with_the_key():
