@@ -154,14 +154,58 @@ def estimate_from_frame(df: pl.DataFrame, meta: Mapping[str, str]) -> TrackEstim
     extras = {k: _column_array(df, k, (R, K, *v["shape"])).astype(v["dtype"]) for k, v in names["extras"].items()}
     seconds = float(json.loads(meta[META_UNITS]).get("compute_seconds", "nan"))
     if "P_upper" in df.columns:
-        from pipeline.kernels import unpack_upper        # numba: only a packed covariance needs it
-        upper = np.triu_indices(n)
-        covariance = np.empty((R, K, n, n))
-        unpack_upper(_column_array(df, "P_upper", (R * K, upper[0].size)), upper[0], upper[1],
-                     covariance.reshape(R * K, n, n))
+        covariance = PackedCovariance(_column_array(df, "P_upper", (R, K, n * (n + 1) // 2)), n)
     else:
         covariance = _column_array(df, "P", (R, K, n, n))
     return TrackEstimate(time, _column_array(df, "x", (R, K, n)), covariance, extras, seconds)
+
+
+class PackedCovariance:
+    """(R, K, n, n) float64 covariances held as their float32 upper triangles (R, K, n(n+1)/2), as a
+    compact estimate table stores them, and unpacked where used: whole by ``np.asarray`` (the
+    symmetric float64 matrices, the same numbers as the table's every time), or a run at a time by
+    ``covariance[r]`` / ``covariance[runs, ...]`` (a recording's run). A 100-run, 10 001-step,
+    6-state variant holds 84 MB instead of 288 MB, so a job with four of them stays within ~1.5 GB;
+    a metric that reads all of them unpacks them for as long as it needs them (0.1 s)."""
+
+    def __init__(self, packed: np.ndarray, n: int) -> None:
+        if packed.shape[-1] != n * (n + 1) // 2:
+            raise ValueError(f"PackedCovariance: {packed.shape[-1]} entries per matrix, expected {n * (n + 1) // 2} "
+                             f"for n = {n}")
+        self.packed, self.n = packed, n
+        self.shape = (*packed.shape[:-1], n, n)
+        self.ndim = len(self.shape)
+        self.dtype = np.dtype(np.float64)
+        self.size = int(np.prod(self.shape))
+
+    def __len__(self) -> int:
+        return self.shape[0]
+
+    def _unpacked(self, packed: np.ndarray) -> np.ndarray:
+        from pipeline.kernels import unpack_upper        # numba: only a packed covariance needs it
+        upper = np.triu_indices(self.n)
+        out = np.empty((*packed.shape[:-1], self.n, self.n))
+        unpack_upper(np.ascontiguousarray(packed).reshape(-1, packed.shape[-1]), upper[0], upper[1],
+                     out.reshape(-1, self.n, self.n))
+        return out
+
+    def __array__(self, dtype=None, copy=None) -> np.ndarray:
+        out = self._unpacked(self.packed)
+        return out if dtype is None else out.astype(dtype, copy=False)
+
+    def __getitem__(self, key):
+        """A leading run index or slice unpacks only the runs it selects; any other index unpacks all first."""
+        first, rest = (key[0], key[1:]) if isinstance(key, tuple) and key else (key, ())
+        if isinstance(first, (int, np.integer)):
+            selected = self._unpacked(self.packed[first])
+            return selected[rest] if rest else selected
+        if isinstance(first, slice) and not any(isinstance(k, (list, np.ndarray)) for k in rest):
+            selected = self._unpacked(self.packed[first])
+            return selected[(slice(None), *rest)] if rest else selected
+        return np.asarray(self)[key]
+
+    def __repr__(self) -> str:
+        return f"PackedCovariance(shape={self.shape}, float32 upper triangles)"
 
 
 def _extent(df: pl.DataFrame, object_column: str) -> tuple[int, int, int]:

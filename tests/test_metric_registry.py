@@ -35,13 +35,41 @@ def test_count_metrics_are_summed_over_a_window_and_the_rest_averaged():
     assert metrics.is_count("detections_axis_z") and not metrics.is_count("nees")
 
 
-def test_nees_by_hand():
+@pytest.fixture(params=["numpy", "compiled"])
+def nees_path(request, monkeypatch):
+    """Both ways nees() solves (metrics.COMPILED_ENTRIES decides by size)."""
+    monkeypatch.setattr(metrics, "COMPILED_ENTRIES", 0 if request.param == "compiled" else 10**18)
+    return request.param
+
+
+def test_nees_by_hand(nees_path):
     error = np.array([[1.0, 2.0], [np.nan, 0.0], [3.0, 0.0]])
     covariance = np.array([np.diag([1.0, 4.0]), np.eye(2), [[2.0, 0.0], [0.0, 0.0]]])
     value = nees(error, covariance)
     assert value[0] == pytest.approx(1.0 + 1.0)                 # 1^2/1 + 2^2/4
     assert np.isnan(value[1])                                    # no estimate: NaN, not an error
     assert value[2] == pytest.approx(9.0 / 2.0)                 # singular: the pseudo-inverse
+
+
+def test_the_compiled_nees_agrees_with_numpys_solve(monkeypatch):
+    """Random well- and ill-conditioned, indefinite (pivoting), singular, NaN and inf covariances of
+    6 states over (runs, steps, targets): the compiled solve equals numpy's to rounding."""
+    rng = np.random.default_rng(5)
+    A = rng.standard_normal((4, 50, 2, 6, 6))
+    P = A @ np.swapaxes(A, -1, -2) + 1e-3 * np.eye(6)
+    P[0, :10] *= 10.0 ** rng.uniform(-6, 6, size=(10, 2, 1, 1))
+    P[1, 3, 0] = np.diag([1.0, -2.0, 3.0, 1.0, 1.0, 1.0])[[1, 0, 2, 3, 4, 5]]   # a zero leading pivot
+    P[1, 4, 1] = np.diag([1.0, 1.0, 0.0, 1.0, 1.0, 1.0])                        # singular
+    P[2, 5, 0, 1, 1] = np.inf
+    error = rng.standard_normal((4, 50, 2, 6))
+    error[3, 7, 1, 2] = np.nan
+    values = {}
+    for path, threshold in (("numpy", 10**18), ("compiled", 0)):
+        monkeypatch.setattr(metrics, "COMPILED_ENTRIES", threshold)
+        values[path] = nees(error, P)
+    np.testing.assert_array_equal(np.isnan(values["compiled"]), np.isnan(values["numpy"]))
+    np.testing.assert_allclose(values["compiled"], values["numpy"], rtol=1e-9)
+    assert np.isnan(values["numpy"][2, 5, 0]) and np.isnan(values["numpy"][3, 7, 1])
 
 
 @pytest.mark.parametrize("experiment, smoke", smoke_experiments())

@@ -68,7 +68,24 @@ def test_a_packed_covariance_is_its_float32_upper_triangle_and_unpacks_symmetric
     packed = df["P_upper"].to_numpy().reshape(3, 5, -1)
     assert packed.dtype == np.float32
     np.testing.assert_array_equal(packed, covariance[..., upper[0], upper[1]].astype(np.float32))
-    back = schemas.estimate_from_frame(df, meta).covariance
+    back = np.asarray(schemas.estimate_from_frame(df, meta).covariance)
     expected = covariance.astype(np.float32).astype(np.float64)
     np.testing.assert_array_equal(back[..., upper[0], upper[1]], expected[..., upper[0], upper[1]])
     np.testing.assert_array_equal(back, np.swapaxes(back, -1, -2))
+
+
+def test_a_packed_covariance_indexes_like_the_unpacked_array():
+    """PackedCovariance (what a compact estimate table gives back) holds float32 upper triangles;
+    every index reads the same as the unpacked float64 array's, a run index unpacking that run only."""
+    rng = np.random.default_rng(3)
+    a = rng.normal(size=(4, 7, 5, 5))
+    full = (a @ np.swapaxes(a, -1, -2)).astype(np.float32).astype(np.float64)
+    upper = np.triu_indices(5)
+    packed = schemas.PackedCovariance(full[..., upper[0], upper[1]].astype(np.float32), 5)
+    assert packed.shape == full.shape and packed.ndim == 4 and len(packed) == 4 and packed.dtype == np.float64
+    np.testing.assert_array_equal(np.asarray(packed), full)
+    for key in (2, (2, 3), slice(1, 3), [0, 3], (slice(None), 4), (1, slice(None), slice(0, 2), slice(0, 2)),
+                (Ellipsis, 0, 0), (Ellipsis, slice(0, 2), slice(0, 2)), np.array([True, False, True, False])):
+        np.testing.assert_array_equal(packed[key], full[key], err_msg=str(key))
+    with pytest.raises(ValueError, match="entries per matrix"):
+        schemas.PackedCovariance(np.zeros((2, 3, 14), dtype=np.float32), 5)
