@@ -140,9 +140,12 @@ def covariance_checks(state: np.ndarray, covariance: np.ndarray, tolerance: floa
 
 
 @njit(cache=True, nogil=True, boundscheck=False)
-def solve_quadratic(error: np.ndarray, covariance: np.ndarray, out: np.ndarray, singular: np.ndarray) -> None:
-    """``out[r] = e' P^-1 e`` for (N, n) errors and (N, n, n) covariances, NaN where either is not
-    finite; ``singular[r]`` where P has an exactly zero pivot (the caller uses the pseudo-inverse
+def solve_quadratic(error: np.ndarray, covariance: np.ndarray, index: np.ndarray, out: np.ndarray,
+                    singular: np.ndarray) -> None:
+    """``out[r] = e' P^-1 e`` for (N, n) errors and covariances given as (N, m) entries with P[i, j] =
+    ``covariance[r, index[i, j]]`` (m = n * n with index = arange for full matrices, m = n(n+1)/2 for
+    float32 upper triangles: a PackedCovariance is solved without unpacking it); NaN where either is
+    not finite; ``singular[r]`` where P has an exactly zero pivot (the caller uses the pseudo-inverse
     there). Gaussian elimination with partial pivoting on a copy of P and e, then back substitution."""
     N, n = error.shape
     A = np.empty((n, n))
@@ -151,8 +154,8 @@ def solve_quadratic(error: np.ndarray, covariance: np.ndarray, out: np.ndarray, 
         ok = True
         for i in range(n):
             ok &= np.isfinite(error[r, i])
-            for j in range(n):
-                ok &= np.isfinite(covariance[r, i, j])
+        for k in range(covariance.shape[1]):
+            ok &= np.isfinite(covariance[r, k])
         singular[r] = False
         if not ok:
             out[r] = np.nan
@@ -160,7 +163,7 @@ def solve_quadratic(error: np.ndarray, covariance: np.ndarray, out: np.ndarray, 
         for i in range(n):
             b[i] = error[r, i]
             for j in range(n):
-                A[i, j] = covariance[r, i, j]
+                A[i, j] = np.float64(covariance[r, index[i, j]])
         for j in range(n):
             pivot_row = j
             for i in range(j + 1, n):

@@ -174,19 +174,28 @@ def nees(error: np.ndarray, covariance: np.ndarray) -> np.ndarray:
     its singular matrices): numpy's batched solve took ~2.7 s and ~1 GB of temporaries there. The
     two agree to rounding (~1e-15 relative)."""
     error = np.asarray(error, dtype=float)
-    covariance = np.asarray(covariance, dtype=float)
-    if covariance.size >= COMPILED_ENTRIES:
+    n = error.shape[-1]
+    packed = getattr(covariance, "packed", None)          # a PackedCovariance (pipeline.schemas): read as it is
+    if packed is not None or np.size(covariance) >= COMPILED_ENTRIES:
         from pipeline.kernels import solve_quadratic      # numba: only large estimates pay its start
-        n = error.shape[-1]
+        if packed is not None:
+            upper = np.triu_indices(n)
+            index = np.empty((n, n), dtype=np.intp)
+            index[upper] = index[upper[1], upper[0]] = np.arange(upper[0].size)
+            entries = np.ascontiguousarray(packed).reshape(-1, upper[0].size)
+        else:
+            index = np.arange(n * n).reshape(n, n)
+            entries = np.ascontiguousarray(covariance, dtype=float).reshape(-1, n * n)
         flat_error = np.ascontiguousarray(error).reshape(-1, n)
-        flat_covariance = np.ascontiguousarray(covariance).reshape(-1, n, n)
         value = np.empty(flat_error.shape[0])
         singular = np.zeros(flat_error.shape[0], dtype=np.bool_)
-        solve_quadratic(flat_error, flat_covariance, value, singular)
+        solve_quadratic(flat_error, entries, index, value, singular)
         if singular.any():
             e = flat_error[singular]
-            value[singular] = np.einsum("...i,...i->...", e, (np.linalg.pinv(flat_covariance[singular]) @ e[..., None])[..., 0])
+            P = entries[singular][:, index].astype(float)
+            value[singular] = np.einsum("...i,...i->...", e, (np.linalg.pinv(P) @ e[..., None])[..., 0])
         return value.reshape(error.shape[:-1])
+    covariance = np.asarray(covariance, dtype=float)
     ok = np.isfinite(error).all(-1) & np.isfinite(covariance).all((-1, -2))
     P = np.where(ok[..., None, None], covariance, np.eye(error.shape[-1]))
     e = np.where(ok[..., None], error, 0.0)

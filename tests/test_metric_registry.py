@@ -70,6 +70,11 @@ def test_the_compiled_nees_agrees_with_numpys_solve(monkeypatch):
     np.testing.assert_array_equal(np.isnan(values["compiled"]), np.isnan(values["numpy"]))
     np.testing.assert_allclose(values["compiled"], values["numpy"], rtol=1e-9)
     assert np.isnan(values["numpy"][2, 5, 0]) and np.isnan(values["numpy"][3, 7, 1])
+    # a PackedCovariance is solved from its float32 triangles: as its unpacked matrices are
+    from pipeline.schemas import PackedCovariance
+    upper = np.triu_indices(6)
+    packed = PackedCovariance(P[..., upper[0], upper[1]].astype(np.float32), 6)
+    np.testing.assert_array_equal(nees(error, packed), nees(error, np.asarray(packed)))
 
 
 @pytest.mark.parametrize("experiment, smoke", smoke_experiments())
