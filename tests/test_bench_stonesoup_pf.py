@@ -1,0 +1,16 @@
+"""benchmarks/bench_stonesoup_pf.py still runs, and its checks hold on a small job: Stone Soup's
+particle filter and ours weigh a cloud alike and agree on the position RMSE within Monte Carlo noise."""
+
+from __future__ import annotations
+
+from tests.extras import require_extra
+
+require_extra("stonesoup", "stonesoup")
+
+from benchmarks import bench_stonesoup_pf  # noqa: E402
+
+
+def test_the_benchmark_runs_and_its_checks_pass(capsys):
+    assert bench_stonesoup_pf.main(["--particles", "300", "--repeats", "1", "--runs", "4"]) == 0
+    out = capsys.readouterr().out
+    assert "Stone Soup / ours, numba" in out and "OK" in out
