@@ -35,7 +35,7 @@ the prior of the study: truth + N(0, P0) per run).
 
 What is timed (``time.perf_counter`` and this process's CPU time, filtering only): one run,
 ``--repeats`` times, the three alternating (a shared machine's load hits all alike); the medians. The
-numba kernel is loaded (or compiled) once before.
+numba kernel is loaded (or compiled) once before. One BLAS thread (OPENBLAS_NUM_THREADS=1 unless set).
 
 Checks (exit 1 when one fails; no timing assertion): the same likelihood (the start cloud's weights
 for scan 1's bearings, ours and Stone Soup's, agree to float32 rounding: 1e-4 of the largest); the
@@ -56,7 +56,13 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
+# One BLAS thread unless the caller says otherwise (before numpy loads): the comparison is of one run
+# on one thread, and OpenBLAS's threads on a 2-core machine shared with other jobs made Stone Soup's
+# and our numpy loop's 20 x 3000 products several times slower (the compiled scan calls no BLAS)
+for _variable in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_variable, "1")
+
+import numpy as np  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
@@ -248,7 +254,9 @@ def main(argv=None) -> int:
     ours = {engine: our_filter(cfg, engine) for engine in ("numba", "numpy")}
     stonesoup = StoneSoupSIR(cfg, reports)
     print(f"study 004 case 1, one-mode bootstrap SIR, buoys {args.buoys}, target sigma {args.target_sigma} m/s^2: "
-          f"{args.particles} particles x {K - 1} scans x 20 states, 8 bearings per scan; {len(os.sched_getaffinity(0))} processors, load average {os.getloadavg()[0]:.1f}")
+          f"{args.particles} particles x {K - 1} scans x 20 states, 8 bearings per scan; "
+          f"{len(os.sched_getaffinity(0))} processors, load average {os.getloadavg()[0]:.1f}, "
+          f"OPENBLAS_NUM_THREADS={os.environ.get('OPENBLAS_NUM_THREADS')}")
 
     one = reports.select([args.timed_run])
     started = time.perf_counter()
