@@ -156,6 +156,11 @@ def _closure(roots: Iterable[str]) -> tuple[dict[str, str], set[str]]:
         if top != name and _location(top)[2]:
             external.add(top)             # a submodule of an installed library: not imported to look
             continue
+        if "." in name:
+            parent_real, parent_is_package, _ = _location(name.rpartition(".")[0])
+            if parent_real is not None and not parent_is_package:
+                continue                  # 'from module import function': an attribute; looking it up
+                                          # would import the module (and a lazy import's numba with it)
         # None: an attribute ('from pkg import function'), not a module, or a namespace package
         real, is_package, is_external = _location(name)
         if real is None:

@@ -125,6 +125,24 @@ def test_relative_imports_and_edits_change_the_fingerprint(tmp_path, monkeypatch
     assert fingerprint.source_fingerprint(["mytrack.cv"]) != before
 
 
+def test_fingerprinting_imports_nothing_a_function_imports_lazily(tmp_path, monkeypatch):
+    """A module's ``from pkg.module import name`` inside a function is followed (module's source is
+    hashed and its edits change the key) without importing the module: the stage key of a job
+    that never calls the function must not pay its imports (pipeline.kernels would bring numba)."""
+    package = tmp_path / "lazyuser"
+    package.mkdir()
+    (package / "__init__.py").write_text("")
+    (package / "front.py").write_text("def run():\n    from lazyuser.heavy import compute\n    return compute()\n")
+    (package / "heavy.py").write_text("raise RuntimeError('imported by the fingerprint')\ndef compute():\n    return 1\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    assert "lazyuser.heavy" in fingerprint.closure_modules(["lazyuser.front"])
+    before = fingerprint.source_fingerprint(["lazyuser.front"])
+    assert "lazyuser.heavy" not in sys.modules
+    (package / "heavy.py").write_text("raise RuntimeError('imported by the fingerprint')\ndef compute():\n    return 2\n")
+    fingerprint._location.cache_clear()
+    assert fingerprint.source_fingerprint(["lazyuser.front"]) != before
+
+
 def test_a_stage_key_covers_every_target_in_its_config_and_the_library_versions(monkeypatch):
     node = {"_target_": "filters.imm.FSIMM", "models": {"_target_": "filters.models.AccelerationModelSet.from_config"}}
     assert fingerprint.producers(node) == ["filters.imm", "filters.models"]
