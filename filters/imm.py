@@ -13,10 +13,21 @@ really does ~5/13 of the per-model work.
 Weights are kept in the log domain and unnormalised: ``log_weight`` = log mu_{k|k-1} + log L_k
 (numerator of eq 1). Normalising over whatever set is running gives mu_k, which is exactly
 the seed's "common models need no recomputation, only renormalisation" (eqs 2-6).
+
+Engines
+-------
+``engine="numba"`` (the default) runs each scan's cycle (mixing, predict, update, likelihood) and
+what is recorded of it (combination, mode probabilities, NIS) as one compiled pass over the runs
+and their models each (``filters.imm_kernel``, 4-state models and 2-D measurements); a run is
+computed from its own running models only, so its numbers do not depend on the batch.
+``engine="numpy"`` is the vectorised numpy cycle below, the reference; the two agree to rounding
+(tests/test_imm_kernel.py; timings in benchmarks/imm_limits.md). The variable-structure logic
+(activation, termination, the slot bookkeeping) is numpy in both.
 """
 
 from __future__ import annotations
 
+import functools
 import time
 from dataclasses import dataclass, replace
 from typing import Literal
@@ -145,14 +156,34 @@ class LinearModelBank:
     def n_models(self) -> int:
         return self.tpm.shape[0]
 
+    @functools.cached_property
+    def kernel_arguments(self) -> tuple:
+        """The bank as ``filters.imm_kernel.cycle`` takes it (tpm, F, Q, offsets, H, structured, dt),
+        worked out once per bank."""
+        from filters import imm_kernel
+
+        dt = imm_kernel.cv_structure(self.transition, self.process_noise, self.measurement_matrix)
+        c = np.ascontiguousarray
+        return (c(self.tpm, dtype=float), _stack3(self.transition), _stack3(self.process_noise),
+                c(self.offsets, dtype=float), c(self.measurement_matrix, dtype=float), dt is not None,
+                0.0 if dt is None else dt)
+
     @classmethod
     def from_model_set(cls, models: AccelerationModelSet) -> "LinearModelBank":
         return cls(models.transition, models.process_noise, models.offsets, models.transition_matrix,
                    models.measurement_matrix)
 
 
+ENGINES = ("numba", "numpy")
+
+
+def compiled_shapes(bank: LinearModelBank) -> bool:
+    """Whether the compiled cycle covers this bank: 4-state models, 2-D measurements."""
+    return bank.transition.shape[-1] == 4 and bank.measurement_matrix.shape == (2, 4)
+
+
 def imm_cycle(prior: ModeSet, targets: np.ndarray, z: np.ndarray, noise_covariance: np.ndarray,
-              bank: LinearModelBank, detected: np.ndarray | None = None) -> ModeSet:
+              bank: LinearModelBank, detected: np.ndarray | None = None, engine: str = "numpy") -> ModeSet:
     """One IMM cycle VSIMM[M_k, M_{k-1}] (seed 001 eqs 1-6; literature notes 4.3).
 
     ``prior`` holds the k-1 posteriors of the models that ran at k-1; ``targets`` (R, B) names
@@ -160,7 +191,11 @@ def imm_cycle(prior: ModeSet, targets: np.ndarray, z: np.ndarray, noise_covarian
 
     Runs whose sets differ in size (a VSIMM union of 8 models beside groups of 5) are filtered in
     buckets of equal (prior size, target size), so no run mixes or filters padding.
+    ``engine="numba"``: the compiled cycle (``filters.imm_kernel.cycle``), each run over its own
+    running slots, no buckets; banks of other shapes than 4-state / 2-D take the numpy cycle.
     """
+    if engine == "numba" and compiled_shapes(bank):
+        return _compiled_cycle(prior, targets, z, noise_covariance, bank, detected)
     valid = targets >= 0
     if valid.all() and prior.valid.all():                      # FSIMM, AO-VSIMM: one dense bucket
         return _dense_cycle(prior, targets, z, noise_covariance, bank, detected)
@@ -185,6 +220,23 @@ def imm_cycle(prior: ModeSet, targets: np.ndarray, z: np.ndarray, noise_covarian
         for field in _FIELDS:
             getattr(out, field)[rows[:, None], slots] = getattr(sub, field)
     return out
+
+
+def _stack3(a: np.ndarray) -> np.ndarray:
+    """(n, n) or (M, n, n) -> a C-contiguous float (1 or M, n, n) stack."""
+    return np.ascontiguousarray(a, dtype=float).reshape((-1,) + a.shape[-2:])
+
+
+def _compiled_cycle(prior: ModeSet, targets: np.ndarray, z: np.ndarray, noise_covariance: np.ndarray,
+                    bank: LinearModelBank, detected: np.ndarray | None) -> ModeSet:
+    from filters import imm_kernel
+
+    seen = np.ones(targets.shape[0], dtype=bool) if detected is None else np.ascontiguousarray(detected, dtype=bool)
+    c = np.ascontiguousarray
+    out = imm_kernel.cycle(c(prior.model_index, dtype=np.int64), c(prior.x, dtype=float), c(prior.P, dtype=float),
+                           c(prior.log_weight, dtype=float), c(targets, dtype=np.int64), c(z, dtype=float),
+                           _stack3(noise_covariance), seen, *bank.kernel_arguments)
+    return ModeSet(*out)
 
 
 def _take_runs(s: ModeSet, rows: np.ndarray) -> ModeSet:
@@ -283,10 +335,15 @@ class _IMMBase:
 
     name: str
 
-    def __init__(self, models: AccelerationModelSet, name: str, initial_model: str = "m1") -> None:
+    def __init__(self, models: AccelerationModelSet, name: str, initial_model: str = "m1",
+                 engine: str = "numba") -> None:
+        if engine not in ENGINES:
+            raise ValueError(f"engine: {engine!r} must be one of {list(ENGINES)}")
         self.models = models
         self.name = name
         self.bank = LinearModelBank.from_model_set(models)
+        # "numba": the compiled cycle and summary (filters.imm_kernel); "numpy": the reference
+        self.engine = engine if compiled_shapes(self.bank) else "numpy"
         self.initial_model = models.model_index(initial_model)
         M = models.n_models
         G = len(models.group_names)
@@ -360,16 +417,29 @@ class _IMMBase:
         s = self._start(measurements)
         groups = GroupState.start(R, self._initial_groups())
         rows = np.arange(R)[:, None]
+        compiled = self.engine == "numba"
+        if compiled:
+            from filters import imm_kernel
+            H = self.bank.kernel_arguments[4]
+            c = np.ascontiguousarray
         for k in counted(range(1, K), "scan", self.name):
+            noise_k = noise[:, k] if noise.ndim == 4 else noise
             if k > 1:
-                noise_k = noise[:, k] if noise.ndim == 4 else noise
                 s, groups, evaluated[:, k] = self._step(s, groups, z[:, k], noise_k, detected[:, k])
-                nis[:, k] = combined_prediction_nis(s, z[:, k], noise_k, self.bank.measurement_matrix, detected[:, k])
-            x, P, mu = combine(s)
-            state_out[:, k], cov_out[:, k] = x, P
-            full = np.zeros((R, M + 1))
-            full[rows, np.where(s.valid, s.model_index, M)] = mu
-            mode_prob[:, k] = full[:, :M]
+            if compiled:            # writes scan k of state_out, cov_out, mode_prob and (k > 1) nis
+                imm_kernel.summary(c(s.model_index, dtype=np.int64), c(s.x), c(s.P), c(s.log_predicted),
+                                   c(s.log_weight), c(s.x_predicted), c(s.P_predicted), c(z[:, k], dtype=float),
+                                   _stack3(noise_k), c(detected[:, k], dtype=bool), H, k, k > 1,
+                                   state_out, cov_out, mode_prob, nis)
+            else:
+                if k > 1:
+                    nis[:, k] = combined_prediction_nis(s, z[:, k], noise_k, self.bank.measurement_matrix,
+                                                        detected[:, k])
+                x, P, mu = combine(s)
+                state_out[:, k], cov_out[:, k] = x, P
+                full = np.zeros((R, M + 1))
+                full[rows, np.where(s.valid, s.model_index, M)] = mu
+                mode_prob[:, k] = full[:, :M]
             active[:, k], candidate[:, k] = groups.old, groups.new
         elapsed = time.perf_counter() - started
         extras = {
@@ -403,7 +473,7 @@ class _IMMBase:
         members = self.models.groups[np.where(fire, target, 0)]                       # (R, S)
         already = (members[:, :, None] == result.model_index[:, None, :]).any(-1)
         new_targets = np.where(fire[:, None] & ~already & (members >= 0), members, -1)
-        new = imm_cycle(prior, new_targets, z, noise, self.bank, detected)
+        new = imm_cycle(prior, new_targets, z, noise, self.bank, detected, self.engine)
         return compact(concat(result, new)), (new_targets >= 0).sum(axis=1)
 
     def _in_group(self, s: ModeSet, group: np.ndarray) -> np.ndarray:
@@ -415,9 +485,10 @@ class FSIMM(_IMMBase):
     """Standard IMM (Blom & Bar-Shalom 1988) over every model of the set, every scan."""
 
     def __init__(self, models: AccelerationModelSet, name: str = "FSIMM", initial_model: str = "m1",
-                 initial_mode_probabilities: list[float] | None = None) -> None:
-        """``initial_mode_probabilities`` (M,) replaces the default mu_0 = e_{initial_model}."""
-        super().__init__(models, name, initial_model)
+                 initial_mode_probabilities: list[float] | None = None, engine: str = "numba") -> None:
+        """``initial_mode_probabilities`` (M,) replaces the default mu_0 = e_{initial_model}; ``engine``:
+        "numba" (compiled cycle, default) or "numpy" (the reference), see the module's docstring."""
+        super().__init__(models, name, initial_model, engine)
         self.initial_mode_probabilities = None
         if initial_mode_probabilities is not None:
             mu0 = np.asarray(initial_mode_probabilities, dtype=float)
@@ -438,7 +509,7 @@ class FSIMM(_IMMBase):
         return replace(s, log_predicted=log_mu, log_weight=log_mu)
 
     def _step(self, prior, groups, z, noise, detected):
-        s = imm_cycle(prior, prior.model_index, z, noise, self.bank, detected)
+        s = imm_cycle(prior, prior.model_index, z, noise, self.bank, detected, self.engine)
         return s, groups, s.valid.sum(axis=1)
 
 
@@ -451,8 +522,8 @@ class AOVSIMM(_IMMBase):
     """
 
     def __init__(self, models: AccelerationModelSet, name: str = "AO-VSIMM", initial_group: str = "M1",
-                 initial_model: str = "m1", activation_threshold: float = 0.4) -> None:
-        super().__init__(models, name, initial_model)
+                 initial_model: str = "m1", activation_threshold: float = 0.4, engine: str = "numba") -> None:
+        super().__init__(models, name, initial_model, engine)
         self.initial_group = models.group_index(initial_group)
         if not 0.0 <= activation_threshold <= 1.0:
             raise ValueError(f"activation_threshold: {activation_threshold} must be a probability in [0, 1]")
@@ -466,7 +537,7 @@ class AOVSIMM(_IMMBase):
         return self.initial_group
 
     def _step(self, prior, groups, z, noise, detected):
-        result = imm_cycle(prior, prior.model_index, z, noise, self.bank, detected)
+        result = imm_cycle(prior, prior.model_index, z, noise, self.bank, detected, self.engine)
         evaluated = result.valid.sum(axis=1)
         target = self._activation(result, groups.old, np.ones(len(groups.old), dtype=bool))
         if (target < 0).all():
@@ -499,8 +570,8 @@ class VSIMM(_IMMBase):
     def __init__(self, models: AccelerationModelSet, name: str = "VSIMM", initial_group: str = "M1",
                  initial_model: str = "m1", activation_threshold: float = 0.4,
                  t1_mu: float = 0.85, t2_mu: float = 0.93, t1_L: float = 0.9, t2_L: float = 1.0,
-                 ratio: Literal["printed", "new_old", "old_new"] = "printed") -> None:
-        super().__init__(models, name, initial_model)
+                 ratio: Literal["printed", "new_old", "old_new"] = "printed", engine: str = "numba") -> None:
+        super().__init__(models, name, initial_model, engine)
         if ratio not in self.RATIOS:
             raise ValueError(f"ratio: {ratio!r} is not one of {list(self.RATIOS)}")
         for key, value in (("activation_threshold", activation_threshold),):
@@ -526,7 +597,7 @@ class VSIMM(_IMMBase):
         return self.initial_group
 
     def _step(self, prior, groups, z, noise, detected):
-        result = imm_cycle(prior, prior.model_index, z, noise, self.bank, detected)
+        result = imm_cycle(prior, prior.model_index, z, noise, self.bank, detected, self.engine)
         evaluated = result.valid.sum(axis=1)
         in_union = groups.new >= 0
         target = self._activation(result, groups.old, ~in_union)
