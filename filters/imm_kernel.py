@@ -473,3 +473,30 @@ def summary(index, x, P, log_predicted, log_weight, x_predicted, P_predicted, z,
         s11 += Rn[1, 1]
         det = s00 * s11 - s01 * s10
         nis_out[r, k] = (nu0 * (s11 * nu0 - s01 * nu1) + nu1 * (s00 * nu1 - s10 * nu0)) / det
+
+
+_warm = False
+
+
+def warm_up() -> None:
+    """Load (or, the first time on a machine, compile) ``cycle`` and ``summary`` for the argument
+    types ``filters.imm`` passes, on a one-run, one-model problem. ``_IMMBase.run`` calls it before
+    its clock starts, so that the first estimator of a process does not carry numba's start-up
+    (~0.8 s, numba's own, any cached function pays it) or the compilation in its compute time."""
+    global _warm
+    if _warm:
+        return
+    index = np.zeros((1, 1), np.int64)
+    x = np.zeros((1, 1, 4))
+    P = np.zeros((1, 1, 4, 4))
+    P[0, 0] = np.eye(4)
+    w = np.zeros((1, 1))
+    z = np.zeros((1, 2))
+    noise = np.eye(2)[None]
+    seen = np.ones(1, dtype=bool)
+    H = np.array([[1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0]])
+    out = cycle(index, x, P, w, index, z, noise, seen, np.ones((1, 1)), np.eye(4)[None], np.eye(4)[None],
+                np.zeros((1, 4)), H, True, 1.0)
+    summary(*out[:2], out[2], out[3], out[5], out[6], out[7], z, noise, seen, H, 1, True,
+            np.zeros((1, 2, 4)), np.zeros((1, 2, 4, 4)), np.zeros((1, 2, 1)), np.zeros((1, 2)))
+    _warm = True

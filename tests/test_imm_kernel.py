@@ -161,3 +161,16 @@ def test_compiled_cycle_with_padding_and_general_models(bank_kind, models):
 def test_engine_is_checked(models):
     with pytest.raises(ValueError, match="engine"):
         FSIMM(models, engine="cuda")
+
+
+def test_one_compilation_serves_every_estimator_and_bank(models, meas):
+    """filters.imm hands the kernel one set of argument types (C-contiguous int64 / float64 / bool,
+    shared or per-run noise, shared or per-model F and Q): a second signature would compile again
+    (seconds) in the middle of a run."""
+    from filters import imm_kernel
+
+    for make in (FSIMM, VSIMM, AOVSIMM):
+        make(models).run(meas)
+        make(models).run(_per_run_noise(meas))
+    assert len(imm_kernel.cycle.signatures) == 1
+    assert len(imm_kernel.summary.signatures) == 1
