@@ -10,7 +10,10 @@ estimators' parameters come from ``conf/filter/{fsimm,vsimm,ao_vsimm}.yaml``.
 
 What is timed (``time.perf_counter``; filtering only, no data generation):
 
-- our batched estimators, all ``--runs`` runs in one ``.run`` call, best of 3;
+- our batched estimators, all ``--runs`` runs in one ``.run`` call, best of 3, each with its
+  configured engine (the compiled cycle, ``filters/imm_kernel.py``) and with ``engine="numpy"``
+  (the numpy cycle, the reference), the two timed in turn; the compiled engine's first call, which
+  loads the kernel from numba's cache or compiles it, is timed apart;
 - the reference loop FSIMM (``benchmarks/reference_imm.py``), one run at a time, over the first
   ``--loop-runs`` runs, exact start mu_0 = e_m1;
 - FilterPy's ``IMMEstimator`` (``benchmarks/filterpy_imm.py``), one run at a time, over the first
@@ -21,7 +24,8 @@ When a slow implementation runs fewer runs than ``--runs``, its time for ``--run
 100 runs is extrapolated linearly from its measured per-run time (marked ``*`` in the table).
 
 Correctness checks (printed, and in the JSON; the script exits 1 if one fails; there are no
-timing assertions): reference loop vs our FSIMM (exact start), FilterPy vs the reference loop
+timing assertions): reference loop vs our FSIMM (exact start), each estimator's numpy engine vs
+its compiled engine, FilterPy vs the reference loop
 with the same floored start, and FilterPy vs our FSIMM driven from the same floored start
 (``FSIMM(initial_mode_probabilities=...)``). Each compares states (k = 1..200) and acceleration estimates, max abs and
 relative difference, and the acceleration RMSE.
@@ -72,12 +76,15 @@ def build_inputs(runs: int, seed: int):
     return models, scenario, truth, meas
 
 
-def build_estimator(models, config_name: str):
-    """The estimator of ``conf/filter/<config_name>.yaml`` with ``models`` (its other keys as kwargs)."""
+def build_estimator(models, config_name: str, engine: str | None = None):
+    """The estimator of ``conf/filter/<config_name>.yaml`` with ``models`` (its other keys as kwargs),
+    with ``engine`` in place of the file's when given."""
     cfg = OmegaConf.to_container(OmegaConf.load(ROOT / f"conf/filter/{config_name}.yaml"))
     cls = get_class(cfg.pop("_target_"))
     cfg.pop("models", None)
     cfg.pop("defaults", None)
+    if engine is not None:
+        cfg["engine"] = engine
     return cls(models, **cfg)
 
 
@@ -137,6 +144,19 @@ def time_batched(estimator, meas: MeasurementSeries, repeats: int = 3):
     return best, estimate
 
 
+def time_alternating(estimators: list, meas: MeasurementSeries, repeats: int = 3):
+    """Best of ``repeats`` for each estimator, their runs taken in turn (a, b, a, b, ...), so a change
+    of load on a shared machine touches both alike; returns [(seconds, estimate), ...]."""
+    best = [np.inf] * len(estimators)
+    estimates = [None] * len(estimators)
+    for _ in range(repeats):
+        for i, est in enumerate(estimators):
+            t0 = time.perf_counter()
+            estimates[i] = est.run(meas)
+            best[i] = min(best[i], time.perf_counter() - t0)
+    return list(zip(best, estimates))
+
+
 def time_loop(fn, meas: MeasurementSeries, runs: int, label: str):
     """Call fn(z (K, 2)) -> (states, acc) for runs 0..runs-1; return total seconds and stacked outputs."""
     K = meas.z.shape[1]
@@ -179,16 +199,32 @@ def main(argv: list[str] | None = None) -> int:
     checks: list[dict] = []
 
     # ---- ours, batched -----------------------------------------------------------------------
-    ours = {}
+    # each configuration with its own engine (compiled by default) and with engine=numpy (the
+    # reference), timed in turn; the first call of the compiled engine loads (or compiles) the kernel
+    ours, numpy_rows, numpy_estimates, first_call = {}, [], {}, {}
     for config_name in ("fsimm", "vsimm", "ao_vsimm"):
         est = build_estimator(models, config_name)
-        seconds, estimate = time_batched(est, meas)
-        ours[config_name] = estimate
-        evaluated = estimate.extras["models_evaluated"][:, FIRST_SCORED_STEP:].mean()
-        rows.append({"implementation": f"ours {est.name} (batched)", "start": "e_m1", "runs": runs,
-                     "seconds": seconds, "extrapolated": False, "models_per_step": float(evaluated),
-                     "rmse": acceleration_rmse(estimate.extras["acceleration"], truth_acc).tolist()})
-        print(f"  ours {est.name}: {seconds:.3f} s (best of 3), {evaluated:.2f} models/step", file=sys.stderr)
+        reference = build_estimator(models, config_name, engine="numpy")
+        t0 = time.perf_counter()
+        est.run(meas)
+        first_call[config_name] = time.perf_counter() - t0
+        pairs = time_alternating([est, reference] if est.engine != "numpy" else [est], meas)
+        for (seconds, estimate), label in zip(pairs, ["", ", numpy engine"]):
+            evaluated = estimate.extras["models_evaluated"][:, FIRST_SCORED_STEP:].mean()
+            row = {"implementation": f"ours {est.name} (batched{label})", "start": "e_m1", "runs": runs,
+                   "seconds": seconds, "extrapolated": False, "models_per_step": float(evaluated),
+                   "engine": "numpy" if label else est.engine,
+                   "rmse": acceleration_rmse(estimate.extras["acceleration"], truth_acc).tolist()}
+            if label:
+                numpy_rows.append(row)
+                numpy_estimates[config_name] = estimate
+            else:
+                rows.append(row)
+                ours[config_name] = estimate
+            print(f"  ours {est.name}{label}: {seconds:.3f} s (best of 3), {evaluated:.2f} models/step",
+                  file=sys.stderr)
+        print(f"  ours {est.name}: first call {first_call[config_name]:.3f} s", file=sys.stderr)
+    rows += numpy_rows
     fs = ours["fsimm"]
     fs_states, fs_acc = fs.state, fs.extras["acceleration"]
 
@@ -200,6 +236,11 @@ def main(argv: list[str] | None = None) -> int:
                  "rmse": acceleration_rmse(ref_acc, truth_acc[:loop_runs]).tolist()})
     checks.append(compare("reference loop FSIMM", ref_states, ref_acc, fs_states[:loop_runs], fs_acc[:loop_runs],
                           truth_acc[:loop_runs], "ours FSIMM (exact start e_m1)"))
+    for config_name, estimate in numpy_estimates.items():
+        # the numpy engine against the default one, every estimator, every run
+        checks.append(compare(f"ours {config_name}, numpy engine", estimate.state, estimate.extras["acceleration"],
+                              ours[config_name].state, ours[config_name].extras["acceleration"], truth_acc,
+                              f"ours {config_name}, {build_estimator(models, config_name).engine} engine"))
 
     # ---- FilterPy, floored start ---------------------------------------------------------------
     filterpy_info: dict = {"skipped": True}
@@ -243,8 +284,11 @@ def main(argv: list[str] | None = None) -> int:
     for r in rows:
         r["speedup_vs_filterpy"] = (fp_row["seconds_per_run"] / r["seconds_per_run"]) if fp_row else None
         r["models_pct_of_fsimm"] = 100.0 * r["models_per_step"] / models.n_models
-        # CPU share of FSIMM is only meaningful between the batched estimators (same code path, same runs)
-        r["time_pct_of_fsimm"] = (100.0 * r["seconds_per_run"] / fs_row["seconds_per_run"]
+        # CPU share of FSIMM is only meaningful between the batched estimators (same code path, same runs):
+        # each engine's rows against that engine's FSIMM
+        same = next((f for f in rows if f["implementation"].startswith("ours FSIMM") and f.get("engine") == r.get("engine")),
+                    fs_row)
+        r["time_pct_of_fsimm"] = (100.0 * r["seconds_per_run"] / same["seconds_per_run"]
                                   if r["implementation"].startswith("ours") else None)
 
     # ---- report --------------------------------------------------------------------------------
@@ -276,7 +320,10 @@ def main(argv: list[str] | None = None) -> int:
         notes.append("* not measured: scaled linearly from the measured per-run time (that row timed fewer runs"
                      + (f"; the batched rows timed {runs}, and batching makes their per-100 figure indicative only"
                         if runs != 100 else "") + ").")
-    notes.append("Batched: one .run over all runs, best of 3. Loops: one run at a time, summed. "
+    notes.append("Batched: one .run over all runs, best of 3, each estimator's engines timed in turn; the first "
+                 "call (not in the table) loads or compiles the compiled engine's kernel: "
+                 + ", ".join(f"{k} {v:.2f} s" for k, v in first_call.items()) + ".")
+    notes.append("Loops: one run at a time, summed. "
                  "RMSE: per-k RMSE over the timed runs, averaged over k = 2..200.")
     if fp_row:
         notes.append("FilterPy runs from mu_0 = (1-1e-6) e_m1 + 1e-6/12 elsewhere (it fails from e_m1); "
@@ -290,7 +337,7 @@ def main(argv: list[str] | None = None) -> int:
         "study": "001", "scenario": "S1", "steps": K - 1, "runs": runs, "seed": args.seed,
         "loop_runs": loop_runs, "filterpy_runs": fp_runs if not args.skip_filterpy else 0,
         "rmse_definition": "mean over k=2..K-1 of sqrt(mean over runs of (a_hat - a)^2), per axis",
-        "rows": rows, "checks": checks, "filterpy": filterpy_info,
+        "rows": rows, "checks": checks, "filterpy": filterpy_info, "first_call_seconds": first_call,
         "machine": {"platform": platform.platform(), "processor": platform.processor() or platform.machine(),
                     "cpus": os.cpu_count(), "python": platform.python_version(), "numpy": np.__version__},
         "all_checks_passed": all(c["passed"] for c in checks),
