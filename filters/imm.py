@@ -464,6 +464,12 @@ class _IMMBase:
     def _activation(self, result: ModeSet, current: np.ndarray, eligible: np.ndarray) -> np.ndarray:
         """Activation logic (seed sec 4.1, notes 4.4): the max-likelihood model of M_o is the centre
         of another group and its probability exceeds t_a -> that group. Returns (R,) group or -1."""
+        if self.engine == "numba":
+            from filters import imm_kernel
+            c = np.ascontiguousarray
+            return imm_kernel.activation(c(result.model_index, dtype=np.int64), c(result.log_likelihood),
+                                         c(result.log_weight), self.centre_group, c(current, dtype=np.int64),
+                                         c(eligible, dtype=bool), self.activation_threshold)
         mu = result.probabilities()
         best = np.argmax(result.log_likelihood, axis=1)
         rows = np.arange(best.size)
@@ -622,21 +628,29 @@ class VSIMM(_IMMBase):
 
     def _terminate(self, s: ModeSet, groups: GroupState, in_union: np.ndarray) -> tuple[ModeSet, GroupState]:
         """Termination logic (eq 8, notes 4.5) for the runs whose union is running."""
-        in_old = self._in_group(s, groups.old)
-        in_new = self._in_group(s, groups.new)
-        mu = s.probabilities()
-        with np.errstate(divide="ignore", invalid="ignore"):
-            log_mu_old = np.log(_slot_sum(mu * in_old, axis=1))
-            log_mu_new = np.log(_slot_sum(mu * in_new, axis=1))
-            neg = -np.inf
-            log_L_old = (_logsumexp(np.where(in_old, s.log_weight, neg), 1)
-                         - _logsumexp(np.where(in_old, s.log_predicted, neg), 1))
-            log_L_new = (_logsumexp(np.where(in_new, s.log_weight, neg), 1)
-                         - _logsumexp(np.where(in_new, s.log_predicted, neg), 1))
-        if self.ratio == "new_old":
-            log_t_mu, step_lr = log_mu_new - log_mu_old, log_L_new - log_L_old
+        if self.engine == "numba":
+            from filters import imm_kernel
+            c = np.ascontiguousarray
+            log_t_mu, step_lr = imm_kernel.group_ratios(
+                c(s.model_index, dtype=np.int64), c(s.log_weight), c(s.log_predicted), self.membership,
+                c(groups.old, dtype=np.int64), c(groups.new, dtype=np.int64), c(in_union, dtype=bool),
+                self.ratio == "new_old")
         else:
-            log_t_mu, step_lr = log_mu_old - log_mu_new, log_L_old - log_L_new
+            in_old = self._in_group(s, groups.old)
+            in_new = self._in_group(s, groups.new)
+            mu = s.probabilities()
+            with np.errstate(divide="ignore", invalid="ignore"):
+                log_mu_old = np.log(_slot_sum(mu * in_old, axis=1))
+                log_mu_new = np.log(_slot_sum(mu * in_new, axis=1))
+                neg = -np.inf
+                log_L_old = (_logsumexp(np.where(in_old, s.log_weight, neg), 1)
+                             - _logsumexp(np.where(in_old, s.log_predicted, neg), 1))
+                log_L_new = (_logsumexp(np.where(in_new, s.log_weight, neg), 1)
+                             - _logsumexp(np.where(in_new, s.log_predicted, neg), 1))
+            if self.ratio == "new_old":
+                log_t_mu, step_lr = log_mu_new - log_mu_old, log_L_new - log_L_old
+            else:
+                log_t_mu, step_lr = log_mu_old - log_mu_new, log_L_old - log_L_new
         log_lr = np.where(in_union, groups.log_lr + step_lr, groups.log_lr)
         low = in_union & (log_t_mu < self.log_t1_mu) & (log_lr < self.log_t1_L)
         high = in_union & (log_t_mu > self.log_t2_mu) & (log_lr > self.log_t2_L)
@@ -645,9 +659,11 @@ class VSIMM(_IMMBase):
         else:
             end_new, end_old = low, high
         ended = end_old | end_new
+        groups_before = groups
         groups = GroupState(old=np.where(end_old, groups.new, groups.old), new=np.where(ended, -1, groups.new),
                             log_lr=np.where(ended, 0.0, log_lr))
         if not ended.any():
             return s, groups
+        in_old, in_new = self._in_group(s, groups_before.old), self._in_group(s, groups_before.new)
         keep = np.where(end_new[:, None], in_old, np.where(end_old[:, None], in_new, s.valid))
         return drop_slots(s, keep), groups

@@ -475,11 +475,118 @@ def summary(index, x, P, log_predicted, log_weight, x_predicted, P_predicted, z,
         nis_out[r, k] = (nu0 * (s11 * nu0 - s01 * nu1) + nu1 * (s00 * nu1 - s10 * nu0)) / det
 
 
+@njit(forceinline=True, **_JIT)
+def _slot_probability(logw, a):
+    """mu of slot a: ``ModeSet.probabilities`` over all of the run's slots (padding -inf adds 0)."""
+    top = -np.inf
+    for i in range(logw.shape[0]):
+        v = logw[i]
+        if v > top or v != v:
+            top = v
+    if not math.isfinite(top):
+        top = 0.0
+    total = 0.0
+    for i in range(logw.shape[0]):
+        total += np.exp(logw[i] - top)
+    return np.exp(logw[a] - top) / total
+
+
+@njit(**_JIT)
+def activation(index, log_likelihood, log_weight, centre_group, current, eligible, threshold):
+    """``_IMMBase._activation`` (seed sec 4.1): per run, the group whose centre is the
+    max-likelihood model (numpy's argmax: the first maximum, a NaN counting as one) when that
+    model's probability exceeds ``threshold``, the run is eligible and the group is not
+    ``current``; else -1."""
+    R, A = index.shape
+    out = np.full(R, -1, np.int64)
+    for r in range(R):
+        best = 0
+        top = log_likelihood[r, 0]
+        if top == top:
+            for a in range(1, A):
+                v = log_likelihood[r, a]
+                if v != v:
+                    best = a
+                    break
+                if v > top:
+                    top = v
+                    best = a
+        m = index[r, best]
+        target = centre_group[m] if m >= 0 else -1
+        if eligible[r] and target >= 0 and target != current[r]:
+            if _slot_probability(log_weight[r], best) > threshold:
+                out[r] = target
+    return out
+
+
+@njit(forceinline=True, **_JIT)
+def _masked_logsumexp(values, index, membership, g):
+    """``_logsumexp`` over the run's slots whose model is in group g (the others count as -inf)."""
+    top = -np.inf
+    for a in range(values.shape[0]):
+        if index[a] >= 0 and membership[g, index[a]]:
+            v = values[a]
+            if v > top or v != v:
+                top = v
+    if not math.isfinite(top):
+        top = 0.0
+    total = 0.0
+    for a in range(values.shape[0]):
+        if index[a] >= 0 and membership[g, index[a]]:
+            total += np.exp(values[a] - top)
+    return np.log(total) + top
+
+
+@njit(**_JIT)
+def group_ratios(index, log_weight, log_predicted, membership, old, new, in_union, new_over_old):
+    """The termination statistics of ``VSIMM._terminate`` (eq 8, notes 4.5) for the runs whose
+    union runs: log t^mu = log mu(M_o) - log mu(M_a) and this scan's log likelihood ratio
+    log L(M_o) - log L(M_a) (new over old when ``new_over_old``), group probability the sum of its
+    members' mu, group likelihood sum mu_{k|k-1} L / sum mu_{k|k-1}; 0 for the other runs."""
+    R, A = index.shape
+    log_t_mu = np.zeros(R)
+    step = np.zeros(R)
+    for r in range(R):
+        if not in_union[r]:
+            continue
+        top = -np.inf
+        for a in range(A):
+            v = log_weight[r, a]
+            if v > top or v != v:
+                top = v
+        if not math.isfinite(top):
+            top = 0.0
+        total = 0.0
+        for a in range(A):
+            total += np.exp(log_weight[r, a] - top)
+        mu_old = 0.0
+        mu_new = 0.0
+        for a in range(A):
+            m = index[r, a]
+            if m >= 0:
+                mu = np.exp(log_weight[r, a] - top) / total
+                if membership[old[r], m]:
+                    mu_old += mu
+                if membership[new[r], m]:
+                    mu_new += mu
+        L_old = (_masked_logsumexp(log_weight[r], index[r], membership, old[r])
+                 - _masked_logsumexp(log_predicted[r], index[r], membership, old[r]))
+        L_new = (_masked_logsumexp(log_weight[r], index[r], membership, new[r])
+                 - _masked_logsumexp(log_predicted[r], index[r], membership, new[r]))
+        if new_over_old:
+            log_t_mu[r] = np.log(mu_new) - np.log(mu_old)
+            step[r] = L_new - L_old
+        else:
+            log_t_mu[r] = np.log(mu_old) - np.log(mu_new)
+            step[r] = L_old - L_new
+    return log_t_mu, step
+
+
 _warm = False
 
 
 def warm_up() -> None:
-    """Load (or, the first time on a machine, compile) ``cycle`` and ``summary`` for the argument
+    """Load (or, the first time on a machine, compile) every function of the kernel for the argument
     types ``filters.imm`` passes, on a one-run, one-model problem. ``_IMMBase.run`` calls it before
     its clock starts, so that the first estimator of a process does not carry numba's start-up
     (~0.8 s, numba's own, any cached function pays it) or the compilation in its compute time."""
@@ -499,4 +606,7 @@ def warm_up() -> None:
                 np.zeros((1, 4)), H, True, 1.0)
     summary(*out[:2], out[2], out[3], out[5], out[6], out[7], z, noise, seen, H, 1, True,
             np.zeros((1, 2, 4)), np.zeros((1, 2, 4, 4)), np.zeros((1, 2, 1)), np.zeros((1, 2)))
+    yes = np.ones(1, dtype=bool)
+    activation(index, w, w, np.zeros(2, np.int64), np.zeros(1, np.int64), yes, 0.5)
+    group_ratios(index, w, w, np.ones((1, 2), dtype=bool), np.zeros(1, np.int64), np.zeros(1, np.int64), yes, True)
     _warm = True

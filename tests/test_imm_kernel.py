@@ -174,3 +174,39 @@ def test_one_compilation_serves_every_estimator_and_bank(models, meas):
         make(models).run(_per_run_noise(meas))
     assert len(imm_kernel.cycle.signatures) == 1
     assert len(imm_kernel.summary.signatures) == 1
+
+
+@pytest.mark.parametrize("ratio", VSIMM.RATIOS)
+def test_compiled_group_logic_agrees_with_numpy(ratio, models):
+    """Activation and termination on ragged random sets (runs in and out of a union, padding slots,
+    a -inf likelihood): the compiled statistics give numpy's decisions and log t^L to rounding."""
+    from filters.imm import GroupState
+
+    rng = np.random.default_rng(11)
+    R, A, M = 40, 9, models.n_models
+    old = rng.integers(0, len(models.group_names), R)
+    new = np.where(rng.random(R) < 0.7, rng.integers(0, len(models.group_names), R), -1)
+    new = np.where(new == old, -1, new)
+    index = np.full((R, A), -1)
+    for r in range(R):
+        members = np.unique(np.concatenate([models.groups[g][models.groups[g] >= 0] for g in {old[r], new[r]} - {-1}]))
+        index[r, :members.size] = rng.permutation(members)[:A]
+    valid = index >= 0
+    log_pred = np.where(valid, np.log(rng.dirichlet(np.ones(A), R)), -np.inf)
+    log_lik = np.where(valid, rng.normal(-3, 2, (R, A)), -np.inf)
+    log_lik[0, 0] = -np.inf
+    zeros = np.zeros((R, A, 4)), np.broadcast_to(np.eye(4), (R, A, 4, 4)).copy()
+    s = ModeSet(index, *zeros, log_pred, log_lik, log_pred + log_lik, *zeros)
+    groups = GroupState(old=old, new=new, log_lr=rng.normal(0, 0.2, R))
+    in_union = new >= 0
+    compiled = VSIMM(models, ratio=ratio, activation_threshold=0.3, engine="numba")
+    reference = VSIMM(models, ratio=ratio, activation_threshold=0.3, engine="numpy")
+    np.testing.assert_array_equal(compiled._activation(s, old, ~in_union), reference._activation(s, old, ~in_union))
+    assert (reference._activation(s, old, ~in_union) >= 0).any()
+    kept, g1 = compiled._terminate(s, groups, in_union)
+    want, g2 = reference._terminate(s, groups, in_union)
+    np.testing.assert_array_equal(g1.old, g2.old)
+    np.testing.assert_array_equal(g1.new, g2.new)
+    np.testing.assert_allclose(g1.log_lr, g2.log_lr, rtol=1e-12, atol=1e-12)
+    assert (g2.new < 0).sum() > (~in_union).sum()            # some unions ended
+    np.testing.assert_array_equal(kept.model_index, want.model_index)
