@@ -269,8 +269,9 @@ def main(argv: list[str] | None = None) -> int:
         checks.append(compare("FilterPy IMMEstimator", fp_states, fp_acc, fsf.state[:fp_runs],
                               fsf.extras["acceleration"][:fp_runs], truth_acc[:fp_runs],
                               "ours FSIMM (same floored start)"))
-        floor_effect = compare("reference loop, floored start", reff_states, reff_acc, ref_states[:fp_runs],
-                               ref_acc[:fp_runs], truth_acc[:fp_runs], "reference loop, exact start")
+        both = min(fp_runs, loop_runs)      # the runs both reference loops filtered
+        floor_effect = compare("reference loop, floored start", reff_states[:both], reff_acc[:both],
+                               ref_states[:both], ref_acc[:both], truth_acc[:both], "reference loop, exact start")
         floor_effect["passed"] = None       # informational: the floor is a different filter
         filterpy_info["floor_effect"] = floor_effect
 
