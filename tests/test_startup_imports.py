@@ -1,7 +1,7 @@
 """Start-up: the default job does not import heavy modules it does not use.
 
 Each is imported where it is needed (a lazy import inside the function, with a comment why):
-matplotlib (the report's figures), numba (study 004's compiled particle kernel),
+matplotlib (the report's figures), numba (only a job whose filters or large tables run compiled),
 rerun (only when a recording is written), stonesoup (its experiments), optuna and submitit (Hydra's
 sweeper and launcher plugins, the [tune] and [slurm] extras), tqdm (a progress bar on a terminal).
 Each test runs a fresh interpreter, since this test session has imported most of them already.
@@ -18,10 +18,12 @@ from pathlib import Path
 from tests.conftest import ROOT
 
 NOT_AT_IMPORT = ["scipy", "matplotlib", "numba", "rerun", "stonesoup", "optuna", "submitit", "tqdm"]
-# a job without a recording on no terminal. It does import scipy.stats (~0.9 s on the 2-core machine):
+# a job without a recording on no terminal. It imports numba: study 001's IMMs run compiled
+# (filters/imm_kernel.py; ~0.6-1 s of numba's start, which a 20-run job does not win back, a 100-run
+# one does). It does import scipy.stats (~0.9 s on the 2-core machine):
 # its intervals and paired tests are scipy.stats' (t, chi-square, Clopper-Pearson, Wilcoxon), kept
 # as the library's rather than re-derived here to save that second
-NOT_IN_A_JOB = ["matplotlib", "numba", "rerun", "stonesoup", "optuna", "submitit", "tqdm"]
+NOT_IN_A_JOB = ["matplotlib", "rerun", "stonesoup", "optuna", "submitit", "tqdm"]
 
 _LOADED = "import json, sys; print(json.dumps(sorted(m for m in {names!r} if m in sys.modules)))"
 
