@@ -1,5 +1,7 @@
 from __future__ import annotations
 
+import copy
+import functools
 from pathlib import Path
 
 import numpy as np
@@ -29,15 +31,30 @@ def measurements(truth, seed: int, noise_std: float = 20.0) -> MeasurementSeries
     return MeasurementSeries(det.time, det.z[:, :, 0], noise_std**2 * np.eye(2), det.detected[:, :, 0], det.sensor)
 
 
+EXPERIMENTS = tuple(sorted(p.stem for p in (CONF / "experiment").glob("*.yaml")))
+
+
+@functools.cache
+def _composed(experiment: str, overrides: tuple[str, ...]):
+    from hydra import compose, initialize_config_dir
+
+    with initialize_config_dir(version_base="1.3", config_dir=str(CONF)):
+        return compose("config", overrides=[f"experiment={experiment}", *overrides])
+
+
+def composed(experiment: str, *overrides: str):
+    """conf/config.yaml composed with ``experiment=<experiment>`` and the overrides, unresolved: a
+    copy of one composition per process (Hydra takes ~0.3-0.8 s a composition, and the collection
+    of the test files alone asked for some 200 of them)."""
+    return copy.deepcopy(_composed(experiment, tuple(overrides)))
+
+
 def smoke_experiments() -> list[tuple[str, list[str]]]:
     """(experiment, its ``smoke`` overrides) for every experiment that sets one (one per study, see
     conf/config.yaml): the tests that must cover every study parametrize over this, not a hand list."""
-    from hydra import compose, initialize_config_dir
-
     found = []
-    with initialize_config_dir(version_base="1.3", config_dir=str(CONF)):
-        for path in sorted((CONF / "experiment").glob("*.yaml")):
-            cfg = compose("config", overrides=[f"experiment={path.stem}"])
-            if cfg.get("smoke") is not None:
-                found.append((path.stem, [str(o) for o in cfg.smoke]))
+    for name in EXPERIMENTS:
+        smoke = _composed(name, ()).get("smoke")
+        if smoke is not None:
+            found.append((name, [str(o) for o in smoke]))
     return found

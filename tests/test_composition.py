@@ -105,17 +105,15 @@ def test_on_the_command_line_the_refusal_is_one_paragraph(tmp_path):
 
 def test_the_shipped_filters_run_in_every_experiment_of_their_kind():
     """A filter that takes a kind runs with every sensor of that kind (composition is by kind, not by study)."""
-    from hydra import compose, initialize_config_dir
-
     from pipeline.config import check_measurement_kinds
+    from tests.conftest import EXPERIMENTS, composed
     classes = filter_classes_in_conf()
-    with initialize_config_dir(version_base="1.3", config_dir=str(ROOT / "conf")):
-        for path in sorted((ROOT / "conf" / "experiment").glob("*.yaml")):
-            cfg = compose("config", overrides=[f"experiment={path.stem}"])
-            produced = produced_kind(get_object(cfg.sensors._target_), cfg.sensors)
-            fitting = [name for name, cls in classes.items() if produced in cls.accepts]
-            assert fitting, path.stem
-            check_measurement_kinds(cfg, list(cfg.filters.keys()))     # the shipped variants fit
+    for experiment in EXPERIMENTS:
+        cfg = composed(experiment)
+        produced = produced_kind(get_object(cfg.sensors._target_), cfg.sensors)
+        fitting = [name for name, cls in classes.items() if produced in cls.accepts]
+        assert fitting, experiment
+        check_measurement_kinds(cfg, list(cfg.filters.keys()))     # the shipped variants fit
 
 
 if __name__ == "__main__":

@@ -18,13 +18,13 @@ import re
 from pathlib import Path
 
 import pytest
-from hydra import compose, initialize_config_dir
 from omegaconf import DictConfig, ListConfig, OmegaConf, open_dict
 
 from hypothesis import HealthCheck, given, settings, strategies as st
 
 from pipeline.errors import ConfigError
 from pipeline.runner import prepare
+from tests.conftest import composed
 
 ROOT = Path(__file__).resolve().parents[1]
 EXPERIMENTS = sorted(p.stem for p in (ROOT / "conf" / "experiment").glob("*.yaml"))
@@ -36,9 +36,10 @@ EXAMPLES = settings(max_examples=60, deadline=None, suppress_health_check=[Healt
 
 @functools.cache
 def _composed(experiment: str) -> DictConfig:
-    with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base=None):
-        cfg = compose("config", overrides=[f"experiment={experiment}", "paths.artifacts=/nonexistent-artifacts"])
-    return cfg                      # unresolved: a bad target_model.X reaches the filters through ${...}
+    # unresolved: a bad target_model.X reaches the filters through ${...}
+    cfg = composed(experiment)
+    cfg.paths.artifacts = "/nonexistent-artifacts"
+    return cfg
 
 
 def _leaves(node, prefix: str = ""):

@@ -123,17 +123,14 @@ def test_report_spec_rejects_a_target_list():
 
 
 def test_every_experiment_declares_targets_that_parse():
-    from hydra import compose, initialize_config_dir
     from omegaconf import OmegaConf
 
-    from tests.conftest import CONF
-    experiments = sorted(p.stem for p in (Path(CONF) / "experiment").glob("*.yaml"))
-    with initialize_config_dir(version_base="1.3", config_dir=str(CONF)):
-        for name in experiments:
-            cfg = compose("config", overrides=[f"experiment={name}"])
-            spec = ReportSpec.from_config(OmegaConf.to_container(cfg.report, resolve=True))
-            assert spec.targets, f"{name} declares no reproduction targets"
-            assert int(cfg.paper_runs) >= 50, name
+    from tests.conftest import EXPERIMENTS, composed
+    for name in EXPERIMENTS:
+        cfg = composed(name)
+        spec = ReportSpec.from_config(OmegaConf.to_container(cfg.report, resolve=True))
+        assert spec.targets, f"{name} declares no reproduction targets"
+        assert int(cfg.paper_runs) >= 50, name
 
 
 def test_current_rechecks_a_stored_run_against_the_definitions_in_conf(small_run, tmp_path):

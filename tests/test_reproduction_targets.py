@@ -14,22 +14,19 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
-from hydra import compose, initialize_config_dir
 
 from pipeline.report import ReportSpec, evaluate_target, load_run
+from tests.conftest import EXPERIMENTS, composed
 from tests.test_pipeline import run_in_process
-
-CONF = Path(__file__).resolve().parents[1] / "conf"
 
 
 def _experiments() -> list[tuple[str, int]]:
     found = []
-    with initialize_config_dir(version_base="1.3", config_dir=str(CONF)):
-        for path in sorted((CONF / "experiment").glob("*.yaml")):
-            cfg = compose("config", overrides=[f"experiment={path.stem}"])
-            runs = cfg.get("target_test_runs")
-            if runs is not None and (cfg.get("report") or {}).get("targets"):
-                found.append((path.stem, int(runs)))
+    for name in EXPERIMENTS:
+        cfg = composed(name)
+        runs = cfg.get("target_test_runs")
+        if runs is not None and (cfg.get("report") or {}).get("targets"):
+            found.append((name, int(runs)))
     return found
 
 
@@ -48,8 +45,7 @@ def test_every_untimed_target_holds(tmp_path, experiment, runs):
 
 def test_the_experiments_with_targets_are_all_covered():
     """Every experiment with targets is tested here or names the test file that covers it."""
-    with initialize_config_dir(version_base="1.3", config_dir=str(CONF)):
-        for path in sorted((CONF / "experiment").glob("*.yaml")):
-            cfg = compose("config", overrides=[f"experiment={path.stem}"])
-            if (cfg.get("report") or {}).get("targets") and cfg.get("target_test_runs") is None:
-                assert (Path(__file__).parent / str(cfg.targets_tested_in)).is_file(), path.stem
+    for name in EXPERIMENTS:
+        cfg = composed(name)
+        if (cfg.get("report") or {}).get("targets") and cfg.get("target_test_runs") is None:
+            assert (Path(__file__).parent / str(cfg.targets_tested_in)).is_file(), name

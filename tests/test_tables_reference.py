@@ -10,7 +10,6 @@ from types import SimpleNamespace
 import numpy as np
 import polars as pl
 import pytest
-from hydra import compose, initialize_config_dir
 from omegaconf import open_dict
 
 from pipeline.config import compute_reference
@@ -18,14 +17,16 @@ from pipeline.errors import ConfigError
 from pipeline.evaluate import Window, summary_rows
 from pipeline.runner import prepare
 from pipeline.tables import format_summary
+from tests.conftest import composed
 
 ROOT = Path(__file__).resolve().parents[1]
 EXPERIMENTS = sorted(p.stem for p in (ROOT / "conf" / "experiment").glob("*.yaml"))
 
 
 def _compose(experiment: str):
-    with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base=None):
-        return compose("config", overrides=[f"experiment={experiment}", "paths.artifacts=/nonexistent-artifacts"])
+    cfg = composed(experiment)
+    cfg.paths.artifacts = "/nonexistent-artifacts"
+    return cfg
 
 
 def _rows(**kwargs) -> pl.DataFrame:
