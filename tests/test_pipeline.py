@@ -191,10 +191,12 @@ def test_a_failed_job_is_recorded_and_the_others_stay_queryable(tmp_path):
 
 
 # the long studies run shortened here (their own pipeline tests cover them in depth): 10 000 s of
-# sonar and 1000-3000 particles would otherwise take most of this test's time. "++": the sweep's
-# primary config (the default experiment) has no such keys
+# sonar, 1000-3000 particles and 900 s of ADS-B flight under seven filters (the MIE filters' scans
+# cost milliseconds each) would otherwise take most of this test's time. "++": the sweep's primary
+# config (the default experiment) has no such keys
 SHORTENED = {"sonar_*": ["++scenario.duration=1200"],
-             "sonobuoy_*": ["++scenario.duration=100", "++target_model.particles=100"]}
+             "sonobuoy_*": ["++scenario.duration=100", "++target_model.particles=100"],
+             "adsb_*": ["++scenario.duration=60"]}
 
 
 def test_every_experiment_file_runs_end_to_end(tmp_path):
