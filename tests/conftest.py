@@ -58,3 +58,29 @@ def smoke_experiments() -> list[tuple[str, list[str]]]:
         if smoke is not None:
             found.append((name, [str(o) for o in smoke]))
     return found
+
+
+class SmokeRuns:
+    """Each smoke experiment's run at ``mc.runs=2`` with its smoke overrides (the recording off),
+    made on first use and kept for the session (one per xdist worker), every experiment's under
+    one artifacts root ``root`` (``runs/<experiment>/run``, one stage cache): the metric registry,
+    recompute and cached-stage determinism tests read the same run instead of making their own.
+    A test may add runs under ``root``; it must not change what is there."""
+
+    def __init__(self, root: Path) -> None:
+        self.root = root
+        self.overrides = dict(smoke_experiments())
+        self._done: dict[str, tuple] = {}
+
+    def __call__(self, experiment: str):
+        """(RunOutcome, RunContext) of the experiment's smoke run."""
+        if experiment not in self._done:
+            from tests.test_pipeline import run_in_process
+            self._done[experiment] = run_in_process(self.root, f"{experiment}/run", f"experiment={experiment}",
+                                                    "mc.runs=2", *self.overrides[experiment])
+        return self._done[experiment]
+
+
+@pytest.fixture(scope="session")
+def smoke_runs(tmp_path_factory) -> SmokeRuns:
+    return SmokeRuns(tmp_path_factory.mktemp("smoke_runs"))

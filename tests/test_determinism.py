@@ -65,10 +65,12 @@ def sweep(artifacts: Path, *args: str) -> list[Path]:
 
 
 @pytest.mark.parametrize("experiment, smoke", smoke_experiments())
-def test_a_cached_stage_gives_the_same_tables_as_a_recomputed_one(tmp_path, experiment, smoke):
+def test_a_cached_stage_gives_the_same_tables_as_a_recomputed_one(tmp_path, smoke_runs, experiment, smoke):
+    """The session's smoke run (conftest.SmokeRuns: its stages computed and cached), the same job again
+    in its artifacts root (every stage read from the cache) and with the cache off."""
     overrides = ["mc.runs=2", *smoke]
-    fresh = in_process(tmp_path / "a", "fresh", f"experiment={experiment}", *overrides)
-    again = in_process(tmp_path / "a", "again", f"experiment={experiment}", *overrides)      # every stage cached
+    fresh = smoke_runs(experiment)[1].run_dir
+    again = in_process(smoke_runs.root, f"{experiment}/again", f"experiment={experiment}", *overrides)  # every stage cached
     uncached = in_process(tmp_path / "b", "uncached", f"experiment={experiment}", "cache.enabled=false", *overrides)
     assert_same_tables(fresh, again)
     assert_same_tables(fresh, uncached)

@@ -10,7 +10,6 @@ import pytest
 from pipeline import metrics
 from pipeline.metrics import Metric, format_value, lookup, nees, register
 from tests.conftest import smoke_experiments
-from tests.test_pipeline import run_in_process
 
 
 
@@ -78,8 +77,8 @@ def test_the_compiled_nees_agrees_with_numpys_solve(monkeypatch):
 
 
 @pytest.mark.parametrize("experiment, smoke", smoke_experiments())
-def test_every_metric_a_study_writes_is_registered_with_a_unit(tmp_path, experiment, smoke):
-    out, _ = run_in_process(tmp_path, "run", f"experiment={experiment}", "mc.runs=2", *smoke)
+def test_every_metric_a_study_writes_is_registered_with_a_unit(smoke_runs, experiment, smoke):
+    out, _ = smoke_runs(experiment)                 # the session's smoke run (conftest.SmokeRuns)
     names = set(out.metrics["series"].unique().to_list()) | set(out.summary["series"].unique().to_list())
     unregistered = sorted(n for n in names if lookup(n) is None)
     assert not unregistered, f"{experiment}: metrics without a registry entry: {unregistered}"
@@ -87,17 +86,17 @@ def test_every_metric_a_study_writes_is_registered_with_a_unit(tmp_path, experim
     assert not units, f"{experiment}: summary rows without a unit: {units}"
 
 
-def test_one_query_finds_the_position_rmse_of_every_study(tmp_path):
+def test_one_query_finds_the_position_rmse_of_every_study(smoke_runs):
     """'Lowest position RMSE per experiment' silently dropped study 002, whose names carried the radar
     and target (position_rmse_s2_t32): metric is now the quantity, with component / sensor / target columns."""
     from pipeline.query import query
     studies = smoke_experiments()
-    for experiment, smoke in studies:
-        run_in_process(tmp_path, f"{experiment}/run", f"experiment={experiment}", "mc.runs=2", *smoke)
+    for experiment, _ in studies:
+        smoke_runs(experiment)                      # the session's smoke runs, all under one root
     best = query("SELECT experiment, MIN(value) AS lowest FROM summary WHERE metric = 'position_rmse' "
                  "AND component IS NULL GROUP BY experiment "
-                 "ORDER BY experiment", root=tmp_path)
+                 "ORDER BY experiment", root=smoke_runs.root)
     assert best["experiment"].to_list() == sorted(e for e, _ in studies)
     per_target = query("SELECT DISTINCT sensor, target FROM summary WHERE series = 'position_rmse_s2_t32'",
-                       root=tmp_path)
+                       root=smoke_runs.root)
     assert per_target.rows() == [(2, 32)]

@@ -11,8 +11,8 @@ from tests.test_pipeline import run_in_process
 
 
 @pytest.mark.parametrize("experiment, smoke", smoke_experiments())
-def test_every_study_recomputes_its_stored_metrics_bit_for_bit(tmp_path, capsys, experiment, smoke):
-    _, ctx = run_in_process(tmp_path, "run", f"experiment={experiment}", "mc.runs=2", *smoke)
+def test_every_study_recomputes_its_stored_metrics_bit_for_bit(tmp_path, capsys, smoke_runs, experiment, smoke):
+    _, ctx = smoke_runs(experiment)                 # the session's smoke run (conftest.SmokeRuns), read only
     assert main([str(ctx.run_dir), "--out", str(tmp_path / "again")]) == 0
     out = capsys.readouterr().out
     assert out.count("equal to the stored table bit for bit") == 2, out
