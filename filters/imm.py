@@ -163,7 +163,7 @@ class LinearModelBank:
         from filters import imm_kernel
 
         dt = imm_kernel.cv_structure(self.transition, self.process_noise, self.measurement_matrix)
-        c = np.ascontiguousarray
+        c = _kernel_array
         return (c(self.tpm, dtype=float), _stack3(self.transition), _stack3(self.process_noise),
                 c(self.offsets, dtype=float), c(self.measurement_matrix, dtype=float), dt is not None,
                 0.0 if dt is None else dt)
@@ -222,17 +222,23 @@ def imm_cycle(prior: ModeSet, targets: np.ndarray, z: np.ndarray, noise_covarian
     return out
 
 
+def _kernel_array(a, dtype=float) -> np.ndarray:
+    """``a`` as the kernels take it: C-contiguous and writable (a read-only array, e.g. a table's
+    column read back from the stage cache, is another argument type to numba: a second compilation)."""
+    return np.require(a, dtype=dtype, requirements=["C_CONTIGUOUS", "WRITEABLE"])
+
+
 def _stack3(a: np.ndarray) -> np.ndarray:
-    """(n, n) or (M, n, n) -> a C-contiguous float (1 or M, n, n) stack."""
-    return np.ascontiguousarray(a, dtype=float).reshape((-1,) + a.shape[-2:])
+    """(n, n) or (M, n, n) -> a C-contiguous, writable float (1 or M, n, n) stack."""
+    return _kernel_array(a).reshape((-1,) + a.shape[-2:])
 
 
 def _compiled_cycle(prior: ModeSet, targets: np.ndarray, z: np.ndarray, noise_covariance: np.ndarray,
                     bank: LinearModelBank, detected: np.ndarray | None) -> ModeSet:
     from filters import imm_kernel
 
-    seen = np.ones(targets.shape[0], dtype=bool) if detected is None else np.ascontiguousarray(detected, dtype=bool)
-    c = np.ascontiguousarray
+    seen = np.ones(targets.shape[0], dtype=bool) if detected is None else _kernel_array(detected, dtype=bool)
+    c = _kernel_array
     out = imm_kernel.cycle(c(prior.model_index, dtype=np.int64), c(prior.x, dtype=float), c(prior.P, dtype=float),
                            c(prior.log_weight, dtype=float), c(targets, dtype=np.int64), c(z, dtype=float),
                            _stack3(noise_covariance), seen, *bank.kernel_arguments)
@@ -428,7 +434,7 @@ class _IMMBase:
         if compiled:
             from filters import imm_kernel
             H = self.bank.kernel_arguments[4]
-            c = np.ascontiguousarray
+            c = _kernel_array
         for k in counted(range(1, K), "scan", self.name):
             noise_k = noise[:, k] if noise.ndim == 4 else noise
             if k > 1:
@@ -466,7 +472,7 @@ class _IMMBase:
         of another group and its probability exceeds t_a -> that group. Returns (R,) group or -1."""
         if self.engine == "numba":
             from filters import imm_kernel
-            c = np.ascontiguousarray
+            c = _kernel_array
             return imm_kernel.activation(c(result.model_index, dtype=np.int64), c(result.log_likelihood),
                                          c(result.log_weight), self.centre_group, c(current, dtype=np.int64),
                                          c(eligible, dtype=bool), self.activation_threshold)
@@ -630,7 +636,7 @@ class VSIMM(_IMMBase):
         """Termination logic (eq 8, notes 4.5) for the runs whose union is running."""
         if self.engine == "numba":
             from filters import imm_kernel
-            c = np.ascontiguousarray
+            c = _kernel_array
             log_t_mu, step_lr = imm_kernel.group_ratios(
                 c(s.model_index, dtype=np.int64), c(s.log_weight), c(s.log_predicted), self.membership,
                 c(groups.old, dtype=np.int64), c(groups.new, dtype=np.int64), c(in_union, dtype=bool),

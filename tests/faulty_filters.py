@@ -31,8 +31,8 @@ class SelfKillingFSIMM(FSIMM):
     job that dies the way the out-of-memory killer ends one (tests/test_sweep_isolation.py)."""
 
     def __init__(self, models: AccelerationModelSet, name: str = "FSIMM", initial_model: str = "m1",
-                 sigkill: bool = False) -> None:
-        super().__init__(models, name, initial_model)
+                 sigkill: bool = False, engine: str = "numba") -> None:
+        super().__init__(models, name, initial_model, engine=engine)
         self.sigkill = sigkill
 
     def run(self, measurements):

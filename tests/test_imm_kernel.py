@@ -172,8 +172,8 @@ def test_one_compilation_serves_every_estimator_and_bank(models, meas):
     for make in (FSIMM, VSIMM, AOVSIMM):
         make(models).run(meas)
         make(models).run(_per_run_noise(meas))
-    assert len(imm_kernel.cycle.signatures) == 1
-    assert len(imm_kernel.summary.signatures) == 1
+    assert len(imm_kernel.cycle.signatures) == 1, imm_kernel.cycle.signatures
+    assert len(imm_kernel.summary.signatures) == 1, imm_kernel.summary.signatures
 
 
 @pytest.mark.parametrize("ratio", VSIMM.RATIOS)
