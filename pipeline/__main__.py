@@ -20,6 +20,7 @@ from hydra.types import RunMode
 from omegaconf import DictConfig
 
 from pipeline.errors import PipelineError
+from pipeline.memory import release_freed_memory
 from pipeline.objective import objective_value, trial_result
 from pipeline.runner import RunContext, describe_exception, job_context, record_job_failure, run_experiment
 
@@ -31,6 +32,14 @@ def main(cfg: DictConfig) -> float | None:
     hc = HydraConfig.get()
     multirun = hc.mode == RunMode.MULTIRUN
     ctx = job_context(cfg, hc)
+    try:
+        return _run(cfg, hc, multirun, ctx)
+    finally:
+        if multirun:          # the next job of a one-process sweep starts from what this one freed
+            release_freed_memory()
+
+
+def _run(cfg: DictConfig, hc: DictConfig, multirun: bool, ctx: RunContext) -> float | None:
     try:
         outcome = run_experiment(cfg, ctx)
         objective = objective_value(outcome.summary, cfg.get("objective"))   # a missing row fails the job

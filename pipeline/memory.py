@@ -108,3 +108,27 @@ def check(cfg: Any, scenario: Any, sensor: Any, variants: int) -> MemoryEstimate
             f"with different mc.seed give independent runs), or, if the estimate is too cautious for your "
             f"filters, set mc.max_memory_gb to what the job may use. Nothing was computed.")
     return guess
+
+
+def release_freed_memory() -> bool:
+    """Hand the memory a finished job freed back to the operating system, so the next job of a
+    one-process sweep (Hydra's basic launcher) starts from less: collect cycles, then ask glibc's
+    allocator to return its free heap pages (``malloc_trim(0)``). Freed small blocks otherwise stay
+    in the process's heap, counted in its RSS. Measured on four paper-size jobs run one after the other
+    (ADS-B, study 002, 004 and 003 last): the process held 699 MB when the sonar job started, 536 MB with
+    this, and the sweep's peak went from 1904 to 1821 MB. Returns whether glibc's trim ran (False on
+    another C library, where only the collection happens)."""
+    import ctypes
+    import ctypes.util
+    import gc
+
+    gc.collect()
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+        trim = libc.malloc_trim
+    except (OSError, AttributeError):
+        return False
+    trim.argtypes = [ctypes.c_size_t]
+    trim.restype = ctypes.c_int
+    trim(0)
+    return True
