@@ -19,7 +19,10 @@ at 2 runs and at the paper's size: 1.10-1.96x at 2 runs (the particle-filter job
 2.7 / 0.79: their compact tables hold float32 covariance triangles, a quarter of the float64
 squares counted here). Never below, which is what a refusal needs; before the bootstrap term and
 this baseline, a 2-run study 003 job was estimated at 0.38 GB and peaked at 0.65 GB, and the
-paper-size study 001 and horizontal ADS-B jobs at 0.81-0.92x.
+paper-size study 001 and horizontal ADS-B jobs at 0.81-0.92x. The estimate is of a job whose numba
+kernels are compiled (``__pycache__``): the first job after an install compiles the ones it uses,
+which can add ~0.5 GB to that job (a 2-run study 001 job peaked at 833 MB in a fresh clone, 368 MB
+after), and which no estimate made before the job can tell apart.
 """
 
 from __future__ import annotations
