@@ -146,3 +146,21 @@ def release_freed_memory() -> bool:
     trim.restype = ctypes.c_int
     trim(0)
     return True
+
+
+def own_peak_rss_mb() -> float:
+    """This process's own peak resident memory in MB: ``VmHWM`` of /proc/self/status (Linux), which
+    counts this program only, from its start. ``getrusage``'s ``ru_maxrss`` is not that: Linux keeps
+    the larger of the parent's high-water mark across a vfork and exec, which is how Python's
+    subprocess starts programs, so a job started from a large process (a test runner, a notebook,
+    a launcher) reported its parent's peak (a 2-run study 001 job said 831 MB from a pytest worker;
+    its own peak was 381 MB). ``ru_maxrss`` where /proc is missing."""
+    try:
+        with open("/proc/self/status", encoding="ascii") as status:
+            for line in status:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) / 1024.0
+    except (OSError, ValueError, IndexError):
+        pass
+    import resource
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0

@@ -12,7 +12,6 @@ import datetime as dt
 import json
 import logging
 import math
-import resource
 import sys
 import time
 import traceback
@@ -34,6 +33,7 @@ from pipeline.evaluate import resolved as per_step_values
 from pipeline.uncertainty import CONFIDENCE, RESAMPLES
 from pipeline.faults import FaultChecks, fault_summary
 from pipeline.memory import check as check_memory
+from pipeline.memory import own_peak_rss_mb
 from pipeline.metrics import unit_of, with_breakdown
 from pipeline.process import identity as process_identity
 from pipeline.progress import Reporter, choose_mode
@@ -90,8 +90,7 @@ def write_status(ctx: RunContext, experiment: str, status: str, *, config_hash: 
         "config_hash": config_hash or previous.get("config_hash", ""), "sweep": ctx.sweep, "job_num": ctx.job_num,
         "runs": runs if runs is not None else previous.get("runs"), "package_version": package_version(),
         # the process's high-water mark so far (a pooled sweep worker's covers its earlier jobs too)
-        "peak_rss_mb": round(peak_rss_mb if peak_rss_mb is not None
-                             else resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0, 1),
+        "peak_rss_mb": round(peak_rss_mb if peak_rss_mb is not None else own_peak_rss_mb(), 1),
         # who runs it: a reader tells a job still running from one whose process was killed (pipeline.process)
         "process": process_identity(),
     }

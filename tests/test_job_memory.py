@@ -59,3 +59,25 @@ def test_the_memory_estimate_is_not_below_a_small_jobs_measured_peak(tmp_path, e
     run(tmp_path / "compiling")
     estimated_gb, measured_mb = run(tmp_path / "measured")
     assert estimated_gb * 1024 >= measured_mb, f"estimated {estimated_gb} GB, the job peaked at {measured_mb:.0f} MB"
+
+
+PARENT = textwrap.dedent("""
+    import json, pathlib, subprocess, sys
+    import numpy as np
+
+    held = np.ones(700 * 2**20 // 8)                   # a large parent: 700 MB resident
+    artifacts = pathlib.Path(sys.argv[1])
+    subprocess.run([sys.executable, "-m", "pipeline", "experiment=ao_vsimm_s1", "mc.runs=2", "scenario.steps=30",
+                    "record.enabled=false", f"paths.artifacts={artifacts}"], check=True, capture_output=True)
+    (status,) = artifacts.glob("runs/*/*/status.json")
+    print(json.loads(status.read_text())["peak_rss_mb"])
+""")
+
+
+def test_a_jobs_peak_memory_is_its_own_not_its_parents(tmp_path):
+    """status.json's peak_rss_mb came from getrusage's ru_maxrss, which Linux carries over from the
+    parent through subprocess's vfork and exec: a job started from a pytest worker reported 831 MB,
+    the worker's, for its own 381 MB."""
+    out = subprocess.run([sys.executable, "-c", PARENT, str(tmp_path)], cwd=ROOT, capture_output=True, text=True,
+                         check=True).stdout
+    assert float(out.strip()) < 600, f"the job reported {out.strip()} MB, its parent held 700 MB"

@@ -121,6 +121,8 @@ class JobProcess:
                 self.process.stdin.write(job_input)
             with contextlib.suppress(BrokenPipeError):
                 self.process.stdin.close()
+            # usage.ru_maxrss: the job's peak, or the launcher's if larger (Linux carries the parent's
+            # high-water mark across the vfork and exec that started it); a job writes its own (VmHWM)
             _, wait_status, usage = os.wait4(self.process.pid, 0)
             self.process.returncode = os.waitstatus_to_exitcode(wait_status)
             result = self.result_path.read_bytes() if self.result_path.exists() else None
