@@ -13,16 +13,16 @@ table beside its decoded estimate; the intervals resample the runs at every step
 with an estimate of K steps x T objects x (n + n^2) float64 times 2 (the filters' extras: mode
 probabilities, NIS, ...). The 500 MB is the interpreter with what a job loads (numpy, polars,
 Hydra, scipy.stats, numba and a compiled kernel, rerun for the recording). Against the measured
-peaks of every experiment (whole process, its recording included, status.json's ``peak_rss_mb``),
-at 2 runs and at the paper's size: 1.10-1.96x at 2 runs (the particle-filter jobs closest, 1.10-1.23),
-1.32-3.46x at the paper's size (study 003 100 runs 5.2 GB estimated / 1.61 GB measured, study 002
-2.7 / 0.79: their compact tables hold float32 covariance triangles, a quarter of the float64
-squares counted here). Never below, which is what a refusal needs; before the bootstrap term and
-this baseline, a 2-run study 003 job was estimated at 0.38 GB and peaked at 0.65 GB, and the
-paper-size study 001 and horizontal ADS-B jobs at 0.81-0.92x. The estimate is of a job whose numba
+peaks of every experiment (whole process, its recording included, status.json's ``peak_rss_mb``:
+the job's own VmHWM), at 2 runs and at the paper's size: 1.10-1.98x at 2 runs (the particle-filter
+jobs closest, 1.10-1.24), 1.34-3.44x at the paper's size (study 003 100 runs 5.2 GB estimated /
+1.55 GB measured, study 002 2.7 / 0.78: their compact tables hold float32 covariance triangles, a
+quarter of the float64 squares counted here). Never below, which is what a refusal needs; before
+the bootstrap term and this baseline, a 2-run study 003 job was estimated at 0.38 GB and peaked at
+0.65 GB, and the paper-size study 001 and horizontal ADS-B jobs at 0.81-0.92x. The estimate is of a job whose numba
 kernels are compiled (``__pycache__``): the first job after an install compiles the ones it uses,
-which can add ~0.5 GB to that job (a 2-run study 001 job peaked at 833 MB in a fresh clone, 368 MB
-after), and which no estimate made before the job can tell apart.
+which adds to that job's peak (2 runs in a fresh tree: study 004 663 MB compiling the particle
+kernel, 481 MB after, against 543 MB estimated; study 001 404 MB, then 369 MB).
 """
 
 from __future__ import annotations

@@ -47,8 +47,8 @@ def test_the_memory_estimate_is_not_below_a_small_jobs_measured_peak(tmp_path, e
     """A 2-run job is mostly the interpreter and, for study 003's 10 001 steps, the bootstrap's
     (resamples x steps) arrays: both were missing, and the estimate was 0.29 and 0.38 GB against
     peaks of 0.37 and 0.65 GB. The estimate is of a job whose numba kernels are compiled: the first
-    job on a fresh clone compiles them, which can add ~0.5 GB to that job (833 MB for this 2-run
-    study 001 job in CI), so the job runs once to compile, and the second run is measured."""
+    job on a fresh clone compiles them, which adds to that job's peak (study 004's particle kernel
+    ~0.2 GB), so the job runs once to compile, and the second run is measured."""
     def run(artifacts: Path) -> tuple[float, float]:
         proc = subprocess.run([sys.executable, "-m", "pipeline", f"experiment={experiment}", "mc.runs=2",
                                f"paths.artifacts={artifacts}"], cwd=ROOT, capture_output=True, text=True, check=True)
