@@ -16,13 +16,14 @@ Hydra, scipy.stats, numba and a compiled kernel, rerun for the recording). Again
 peaks of every experiment (whole process, its recording included, status.json's ``peak_rss_mb``:
 the job's own VmHWM), at 2 runs and at the paper's size: 1.10-1.98x at 2 runs (the particle-filter
 jobs closest, 1.10-1.24), 1.34-3.44x at the paper's size (study 003 100 runs 5.2 GB estimated /
-1.55 GB measured, study 002 2.7 / 0.78: their compact tables hold float32 covariance triangles, a
-quarter of the float64 squares counted here). Never below, which is what a refusal needs; before
-the bootstrap term and this baseline, a 2-run study 003 job was estimated at 0.38 GB and peaked at
-0.65 GB, and the paper-size study 001 and horizontal ADS-B jobs at 0.81-0.92x. The estimate is of a job whose numba
-kernels are compiled (``__pycache__``): the first job after an install compiles the ones it uses,
-which adds to that job's peak (2 runs in a fresh tree: study 004 663 MB compiling the particle
-kernel, 481 MB after, against 543 MB estimated; study 001 404 MB, then 369 MB).
+1.55 GB measured: its compact tables hold float32 covariance triangles, a quarter of the float64
+squares counted here; study 002 2.7 / 0.78: 32 targets, small bias estimates). Never below, which
+is what a refusal needs; before the bootstrap term and this baseline, a 2-run study 003 job was
+estimated at 0.38 GB and peaked at 0.65 GB, and the paper-size study 001 and horizontal ADS-B jobs
+were estimated at 0.86-0.93x their own peaks. The estimate is of a job whose numba kernels are
+compiled (``__pycache__``): the first job after an install compiles the ones it uses, which adds
+to that job's peak (2 runs in a fresh tree: study 004 663 MB compiling the particle kernel, 481 MB
+after, against 543 MB estimated; study 001 404 MB, then 369 MB).
 """
 
 from __future__ import annotations
@@ -35,6 +36,7 @@ from typing import Any
 import numpy as np
 
 from pipeline.errors import ConfigError
+from pipeline.uncertainty import RESAMPLES
 
 BASELINE_BYTES = 500 * 2**20
 EXTRAS_FACTOR = 2.0
@@ -91,7 +93,7 @@ class MemoryEstimate:
 
 
 def estimate(scenario: Any, sensor: Any, variants: int, runs: int, seed: int,
-             resamples: int = 2000) -> MemoryEstimate:
+             resamples: int = RESAMPLES) -> MemoryEstimate:
     """The peak estimate from one run of the scenario and the sensor (see the module docstring)."""
     truth = scenario.generate(1, seed)
     inputs = _nbytes(truth) + _nbytes(sensor.measure(truth, seed))
@@ -105,7 +107,7 @@ def check(cfg: Any, scenario: Any, sensor: Any, variants: int) -> MemoryEstimate
     """Refuse (ConfigError) a job whose estimated peak exceeds ``mc.max_memory_gb`` or, when that is
     null, the memory available now; return the estimate (the runner logs it)."""
     runs, seed = int(cfg.mc.runs), int(cfg.mc.seed)
-    resamples = int((cfg.get("uncertainty") or {}).get("bootstrap_resamples", 2000))
+    resamples = int((cfg.get("uncertainty") or {}).get("bootstrap_resamples", RESAMPLES))
     guess = estimate(scenario, sensor, variants, runs, seed, resamples)
     limit_gb = cfg.mc.get("max_memory_gb")
     if limit_gb is not None and (isinstance(limit_gb, bool) or not isinstance(limit_gb, (int, float)) or limit_gb <= 0):
@@ -133,13 +135,11 @@ def release_freed_memory() -> bool:
     this, and the sweep's peak went from 1904 to 1821 MB. Returns whether glibc's trim ran (False on
     another C library, where only the collection happens)."""
     import ctypes
-    import ctypes.util
     import gc
 
     gc.collect()
     try:
-        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
-        trim = libc.malloc_trim
+        trim = ctypes.CDLL(None).malloc_trim    # the process's own symbols: glibc's, if it is glibc
     except (OSError, AttributeError):
         return False
     trim.argtypes = [ctypes.c_size_t]

@@ -79,10 +79,10 @@ def _is_plain(dtype: pl.DataType) -> bool:
 
 
 # Rows of a text column hashed at a time: the byte streams are the same as the whole column's, but
-# the joined text, its Python copy and its UTF-8 copy are one slice's, not the column's. Writing a
-# 100-run study 003 job's metrics table (600 060 rows of names) joined each name column whole: its
-# transient, ~280 MB above the job's held data, was the job's peak (1.61 GB at 100 runs; a 2-run
-# job 759 MB against 480 MB held).
+# the joined text, its Python copy and its UTF-8 copy are one slice's, not the column's. A study 003
+# job's metrics table (600 060 rows of names) had each name column joined whole, and that was where
+# the job peaked: a 2-run job at 759 MB against 480 MB held (592 MB since), 100 runs at 1.61 GB
+# (1.55 GB since).
 HASH_ROWS = 1 << 16
 
 
