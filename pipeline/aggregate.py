@@ -21,14 +21,13 @@ import re
 import sys
 from pathlib import Path
 
-import yaml
 from hydra.core.utils import JobReturn, JobStatus
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, open_dict, read_write
 
 from pipeline.errors import PipelineError
-from pipeline.objective import BEST_CONFIG, write_best_config
-from pipeline.store import atomic_write_parquet
+from pipeline.objective import BEST_CONFIG, job_objectives, write_best_config
+from pipeline.store import atomic_write_parquet, read_yaml
 from pipeline.sweep import META_SWEPT, SWEEP_INDEX, SWEEP_SUMMARY, Sweep, collect, format_glance
 
 
@@ -122,13 +121,14 @@ def report_best_job(sweep_dir: Path) -> None:
     """With an objective (a parameter search): write <sweep_dir>/best_config.yaml and say which job won.
     Optuna's own optimization_results.yaml holds the best parameters only; this adds the whole config
     of the job they came from, and checks that both name the same value."""
+    jobs = job_objectives(sweep_dir)
     try:
-        best = write_best_config(sweep_dir)
+        best = write_best_config(sweep_dir, jobs)
     except PipelineError as exc:
         print(f"  no best job: {exc}", file=sys.stderr)
         return
     if best is None:
-        if _names_an_objective(sweep_dir):
+        if any(job.objective is not None for job in jobs):
             print("  no best job: no job that ended ok has a finite objective value", file=sys.stderr)
         return
     value = best["objective"]["value"]
@@ -136,14 +136,10 @@ def report_best_job(sweep_dir: Path) -> None:
           f"config in {sweep_dir / BEST_CONFIG}", file=sys.stderr)
     optuna = sweep_dir / "optimization_results.yaml"
     if optuna.is_file():
-        reported = yaml.safe_load(optuna.read_text()).get("best_value")
+        reported = read_yaml(optuna).get("best_value")
         if reported is not None and reported != value:   # e.g. a study resumed from storage with older trials
             print(f"  note: Optuna's best_value {reported} (optimization_results.yaml) is not this sweep's best job's "
                   f"{value}: the study holds trials this folder does not", file=sys.stderr)
-
-
-def _names_an_objective(sweep_dir: Path) -> bool:
-    return any(yaml.safe_load(p.read_text()).get("objective") is not None for p in sweep_dir.glob("*/config.yaml"))
 
 
 def main(argv: list[str] | None = None) -> int:

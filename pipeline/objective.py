@@ -15,6 +15,7 @@ and the sweeper's own failure path then passes the NaN again, which raises out o
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import math
@@ -26,7 +27,7 @@ import polars as pl
 import yaml
 
 from pipeline.errors import ConfigError
-from pipeline.store import atomic_write_text, read_table
+from pipeline.store import atomic_write_text, read_table, read_yaml
 
 log = logging.getLogger("pipeline.objective")
 
@@ -60,29 +61,44 @@ def trial_result(value: float | None) -> float | None:
     return value
 
 
-def best_job(sweep_dir: Path) -> dict[str, Any] | None:
+@dataclasses.dataclass(frozen=True)
+class JobObjective:
+    """One job folder of a sweep: its status.json, its config.yaml (None where it wrote none) and the
+    objective that config names (None without one)."""
+    job_dir: Path
+    status: dict[str, Any]
+    config: dict[str, Any] | None
+    objective: dict[str, Any] | None
+
+
+def job_objectives(sweep_dir: Path) -> list[JobObjective]:
+    """Every job folder of the sweep (a status.json), each config.yaml read once."""
+    jobs = []
+    for status_path in sorted(Path(sweep_dir).glob("*/status.json")):
+        config_path = status_path.parent / "config.yaml"
+        config = read_yaml(config_path) if config_path.is_file() else None
+        objective = config.get("objective") if isinstance(config, dict) else None
+        jobs.append(JobObjective(status_path.parent, json.loads(status_path.read_text()), config, objective))
+    return jobs
+
+
+def best_job(sweep_dir: Path, jobs: list[JobObjective] | None = None) -> dict[str, Any] | None:
     """The sweep's best ok job by the objective its config names, or None when no job has a finite
     objective value. Every job must name the same objective (values of different objectives do not
-    compare); a sweep that varies it gets ConfigError."""
+    compare); a sweep that varies it gets ConfigError. ``jobs``: job_objectives(sweep_dir) when the
+    caller has read them already."""
     candidates, objectives = [], {}
-    for status_path in sorted(Path(sweep_dir).glob("*/status.json")):
-        job_dir = status_path.parent
-        status = json.loads(status_path.read_text())
-        config_path = job_dir / "config.yaml"
-        if status.get("status") != "ok" or not config_path.is_file():
+    for job in job_objectives(sweep_dir) if jobs is None else jobs:
+        if job.status.get("status") != "ok" or job.config is None or job.objective is None:
             continue
-        config = yaml.safe_load(config_path.read_text())
-        objective = config.get("objective")
-        if objective is None:
-            continue
-        objectives[job_dir.name] = objective
+        objectives[job.job_dir.name] = job.objective
         try:
-            value = objective_value(read_table(job_dir / "summary.parquet")[0], objective)
+            value = objective_value(read_table(job.job_dir / "summary.parquet")[0], job.objective)
         except Exception as exc:       # a damaged or missing summary: this job cannot be compared
-            log.warning("job %s left out of the best job: %s", job_dir.name, exc)
+            log.warning("job %s left out of the best job: %s", job.job_dir.name, exc)
             continue
         if value is not None and not math.isnan(value):
-            candidates.append((value, job_dir, status, config))
+            candidates.append((value, job.job_dir, job.status, job.config))
     if len({json.dumps(o, sort_keys=True) for o in objectives.values()}) > 1:
         raise ConfigError(f"objective: the jobs of {sweep_dir} name different objectives ({objectives}); their values "
                           f"do not compare, so the sweep has no best job. Sweep the parameters, not the objective.")
@@ -95,10 +111,10 @@ def best_job(sweep_dir: Path) -> dict[str, Any] | None:
             "objective": {**objective, "value": value}, "compared": len(candidates), "config": config}
 
 
-def write_best_config(sweep_dir: Path) -> dict[str, Any] | None:
+def write_best_config(sweep_dir: Path, jobs: list[JobObjective] | None = None) -> dict[str, Any] | None:
     """Write ``<sweep_dir>/best_config.yaml`` (best_trial: job, overrides, objective with its value;
     config: the job's resolved config.yaml) and return the best job, or None (nothing written)."""
-    best = best_job(sweep_dir)
+    best = best_job(sweep_dir, jobs)
     if best is None:
         return None
     objective = best["objective"]

@@ -97,8 +97,8 @@ def read_job(folder: Path) -> Job:
     status = json.loads(status_path.read_text()) if status_path.is_file() else {}
     overrides = status.get("overrides")
     if overrides is None and (folder / ".hydra" / "overrides.yaml").is_file():
-        import yaml
-        overrides = yaml.safe_load((folder / ".hydra" / "overrides.yaml").read_text()) or []
+        from pipeline.store import read_yaml
+        overrides = read_yaml(folder / ".hydra" / "overrides.yaml") or []
     job = Job(folder, status, [str(o) for o in overrides or []])
     summary = folder / "summary.parquet"
     if summary.exists():

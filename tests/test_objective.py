@@ -75,3 +75,20 @@ def test_a_multirun_with_an_objective_writes_the_best_jobs_config_beside_the_swe
     assert best["config"] == yaml.safe_load((sweep / best_job / "config.yaml").read_text())
     assert best["best_trial"]["overrides"] == json.loads((sweep / best_job / "status.json").read_text())["overrides"]
     assert f"best job {best_job} of 2: acceleration_rmse_x = {values[best_job]:.6g}" in proc.stderr
+
+
+def test_a_job_config_reads_back_as_pyyaml_reads_it(tmp_path):
+    """pipeline.store.read_yaml (libyaml's parser, what a sweep's aggregation reads every job's
+    config.yaml with) gives the objects PyYAML's pure-Python safe loader gives, for a whole
+    composed config as a job writes it and for the scalars YAML 1.1 resolves by their look."""
+    from omegaconf import OmegaConf
+
+    from pipeline.store import read_yaml
+
+    cfg = compose_cfg("experiment=sonobuoy_case2", OBJECTIVE, "paths.artifacts=/tmp/x")
+    written = OmegaConf.to_yaml(cfg) + ("tricky: {small: 1.0e-06, text_number: '1e-3', yes_text: 'yes', on: true, "
+                                        "none: null, date_like: '2026-12-02', octal_like: '010', inf: .inf}\n")
+    path = tmp_path / "config.yaml"
+    path.write_text(written)
+    assert read_yaml(path) == yaml.safe_load(written)
+    assert read_yaml(path)["tricky"]["text_number"] == "1e-3" and read_yaml(path)["tricky"]["small"] == 1e-06
