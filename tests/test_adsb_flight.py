@@ -112,6 +112,29 @@ def test_flight_from_a_synthetic_turn_file_gives_the_turn_in_si_units(tmp_path):
     assert flight.state_names == STATE_NAMES
 
 
+def test_a_flight_is_built_once_per_file_and_arguments_and_again_when_the_file_changes(tmp_path):
+    """A process keeps the flights it built (a sweep's jobs, every config a test checks): the same
+    unchanged file with the same arguments gives the same Flight, read-only; other arguments or a
+    rewritten file give a new one, from the file's new content."""
+    import os
+
+    path = tmp_path / "straight.csv"
+    _straight(np.arange(0.0, 121.0)).write_csv(path)
+    kwargs = dict(scan_period=2.0, duration=100.0, site_latitude=SITE[0], site_longitude=SITE[1])
+    first = build_flight(str(path), **kwargs)
+    assert build_flight(str(path), **kwargs) is first
+    assert build_flight(str(path), **{**kwargs, "duration": 80.0}) is not first
+    with pytest.raises(ValueError, match="read-only"):
+        first.state[0, 0] = 1.0
+    _straight(np.arange(0.0, 121.0), speed=150.0).write_csv(path)
+    stamp = path.stat().st_mtime_ns + 1_000_000_000                       # a rewrite within the clock's tick
+    os.utime(path, ns=(stamp, stamp))
+    rebuilt = build_flight(str(path), **kwargs)
+    assert rebuilt is not first
+    np.testing.assert_allclose(rebuilt.state[:, 4], 150.0, atol=0.5)        # north velocity of the new file
+    np.testing.assert_allclose(first.state[:, 4], 100.0, atol=0.5)
+
+
 # ---- cleaning ------------------------------------------------------------------------------------
 def test_cleaning_drops_and_counts_each_kind_of_bad_point():
     north = 100.0 * np.arange(12.0)                                       # 100 m/s due north

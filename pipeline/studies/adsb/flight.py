@@ -21,6 +21,8 @@ Maneuver labels per scan, from the truth (bits, so both may hold):
 
 from __future__ import annotations
 
+import dataclasses
+from collections import OrderedDict
 from dataclasses import dataclass
 from datetime import datetime, timezone
 from typing import Mapping
@@ -29,7 +31,7 @@ import numpy as np
 import pymap3d
 
 from filters.smoothing import smooth_constant_acceleration
-from pipeline.studies.adsb.reading import CleanFlight, load_flight
+from pipeline.studies.adsb.reading import CleanFlight, find_flight_file, load_flight
 
 STATE_NAMES = ("x", "y", "z", "vx", "vy", "vz", "ax", "ay", "az")   # ENU east, north, up; study 000's layout
 MANEUVER_NAMES = ("straight", "turn", "climb_descent", "turn_climb_descent")
@@ -126,6 +128,14 @@ def _window(cleaned: CleanFlight, start: float, duration: float | None) -> tuple
     return segment, start, end
 
 
+# Flights built in this process, by file (path, modification time, size) and every argument: a
+# scenario is built for each config a process checks or runs (a sweep's jobs in one process, the
+# tests), and reading, cleaning and smoothing a flight took 0.1-0.5 s each time. Read-only arrays,
+# so no holder can change what the next one gets.
+_BUILT: "OrderedDict[tuple, Flight]" = OrderedDict()
+_BUILT_KEPT = 16
+
+
 def build_flight(flight: str, scan_period: float = 1.0, start: float = 0.0, duration: float | None = None,
                  site_latitude: float | None = None, site_longitude: float | None = None, site_height: float = 0.0,
                  horizontal_noise_std: float = 25.0, vertical_noise_std: float = 5.0, jerk_psd: float = 1.0,
@@ -139,7 +149,38 @@ def build_flight(flight: str, scan_period: float = 1.0, start: float = 0.0, dura
     smoother assumes for one ADS-B position (east and north, up) [m]; ``jerk_psd`` [m^2/s^5] sets how
     fast it lets the acceleration change. The whole segment is smoothed, so the window's first and
     last scans are smoothed with data on both sides like the others.
+
+    The same file (unchanged: path, modification time and size) with the same arguments gives the
+    Flight this process built before, its arrays read-only.
     """
+    path = find_flight_file(flight)
+    status = path.stat()
+    arguments = (scan_period, start, duration, site_latitude, site_longitude, site_height, horizontal_noise_std,
+                 vertical_noise_std, jerk_psd, max_gap, max_speed, max_vertical_speed, turn_threshold, climb_threshold)
+    key = (str(path.resolve()), status.st_mtime_ns, status.st_size, *(repr(a) for a in arguments))
+    built = _BUILT.get(key)
+    if built is None:
+        built = _read_only(_build_flight(str(path), *arguments))
+        _BUILT[key] = built
+        while len(_BUILT) > _BUILT_KEPT:
+            _BUILT.popitem(last=False)
+    _BUILT.move_to_end(key)
+    return built
+
+
+def _read_only(built: Flight) -> Flight:
+    for holder in (built, built.cleaning):
+        for field in dataclasses.fields(holder):
+            value = getattr(holder, field.name)
+            if isinstance(value, np.ndarray):
+                value.flags.writeable = False
+    return built
+
+
+def _build_flight(flight: str, scan_period: float, start: float, duration: float | None, site_latitude: float | None,
+                  site_longitude: float | None, site_height: float, horizontal_noise_std: float,
+                  vertical_noise_std: float, jerk_psd: float, max_gap: float, max_speed: float,
+                  max_vertical_speed: float, turn_threshold: float, climb_threshold: float) -> Flight:
     cleaned = load_flight(flight, max_gap, max_speed, max_vertical_speed)
     segment, t_start, t_end = _window(cleaned, start, duration)
     steps = int(np.floor((t_end - t_start) / scan_period + 1e-9))
