@@ -275,3 +275,32 @@ def track_block(k0, k1, n0, architecture, modified, form, clamp, bearing_var, ra
             x[r, i] = xr[i]
             for j in range(6):
                 P[r, i, j] = Pr[i, j]
+
+
+_warm = False
+
+
+def read_only(a, dtype) -> np.ndarray:
+    """``a`` as the kernel takes its inputs: C-contiguous, ``dtype``, and read-only (a table's columns
+    reach the trackers read-only; one array type for every caller is one compiled specialisation,
+    the one ``warm_up`` loads)."""
+    view = np.ascontiguousarray(a, dtype=dtype).view()
+    view.flags.writeable = False
+    return view
+
+
+def warm_up() -> None:
+    """Load (or, the first time on a machine, compile) ``track_block`` for the argument types
+    ``filters.mgekf`` passes, on a one-run problem without scans. The trackers call it before their
+    clock starts, so that the first tracker of a process does not carry numba's start-up (~0.5 s)
+    in its compute time (the job's compute-seconds column compares the variants)."""
+    global _warm
+    if _warm:
+        return
+    models = np.zeros((1, 6, 6)), np.zeros((1, 6, 2)), np.zeros((1, 6, 6))
+    small = np.zeros((1, 4, 4)), np.zeros((1, 4, 2)), np.zeros((1, 4, 4))
+    track_block(1, 1, 6, SINGLE, True, TAN, 0.1, 1.0, 1.0, 0.0, read_only(np.zeros((1, 2, 2)), float),
+                read_only(np.ones(2), np.bool_), read_only(np.zeros((1, 2, 2)), float), np.zeros(1, dtype=np.int64),
+                *models, *small, np.zeros((1, 6)),
+                np.zeros((1, 6, 6)), np.zeros((1, 2, 6)), np.zeros((1, 2, 6, 6)), np.zeros((1, 2)))
+    _warm = True
