@@ -368,15 +368,8 @@ class _SonarTracker:
         if self.engine == "numba":
             return self._run_compiled(reports)
         started = _time.perf_counter()
-        R, K, _ = reports.z.shape
-        states = np.full((R, K, 6), np.nan)
-        covariances = np.full((R, K, 6, 6), np.nan)
-        # NIS of each scan's update (evaluate.nis_metrics); NaN at the first scan, which starts the
-        # filter and has no innovation. Its dof: 2 (bearing + range, or the converted x, y) when
-        # active, 1 (bearing) when passive.
-        nis = np.full((R, K), np.nan)
-        nis_dof = np.where(reports.active, 2.0, 1.0)
-        nis_dof[0] = np.nan
+        K = reports.time.shape[0]
+        states, covariances, nis = self._outputs(reports)
         x, P = self._first(reports)
         self._store(states, covariances, 0, x, P)
         steps = np.diff(reports.time)
@@ -387,6 +380,23 @@ class _SonarTracker:
                 models[dt] = self._models(dt)
             x, P, nis[:, k] = self._step(x, P, reports, k, models[dt])
             self._store(states, covariances, k, x, P)
+        return self._estimate(reports, states, covariances, nis, started)
+
+    @staticmethod
+    def _outputs(reports: SonarReports) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """States (R, K, 6), covariances (R, K, 6, 6) and the NIS of each scan's update (R, K)
+        (evaluate.nis_metrics), NaN until a scan fills them: the KF's 4-state scans leave the
+        acceleration entries NaN, and the first scan, which starts the filter, has no innovation."""
+        R, K, _ = reports.z.shape
+        return np.full((R, K, 6), np.nan), np.full((R, K, 6, 6), np.nan), np.full((R, K), np.nan)
+
+    @staticmethod
+    def _estimate(reports: SonarReports, states, covariances, nis, started: float) -> TrackEstimate:
+        """The estimate with its extras: the NIS's dof is 2 (bearing + range, or the converted x, y)
+        when active, 1 (bearing) when passive, NaN at the first scan."""
+        R, K, _ = reports.z.shape
+        nis_dof = np.where(reports.active, 2.0, 1.0)
+        nis_dof[0] = np.nan
         extras = {"active": np.broadcast_to(reports.active.astype(np.int8), (R, K)).copy(),
                   "nis": nis, "nis_dof": np.broadcast_to(nis_dof, (R, K)).copy()}
         return TrackEstimate(reports.time.copy(), states, covariances, extras, _time.perf_counter() - started)
@@ -404,11 +414,7 @@ class _SonarTracker:
         mgekf_kernel.warm_up()                  # numba's start before the clock: compute_seconds is the filtering's
         started = _time.perf_counter()
         R, K, _ = reports.z.shape
-        states = np.full((R, K, 6), np.nan)
-        covariances = np.full((R, K, 6, 6), np.nan)
-        nis = np.full((R, K), np.nan)
-        nis_dof = np.where(reports.active, 2.0, 1.0)
-        nis_dof[0] = np.nan
+        states, covariances, nis = self._outputs(reports)
         x0, P0 = self._first(reports)
         n = x0.shape[-1]
         self._store(states, covariances, 0, x0, P0)
@@ -435,9 +441,7 @@ class _SonarTracker:
             if self._architecture == mgekf_kernel.KF_PLUS_MGEKF:
                 n = 4 if active[stop - 1] else 6
             progress.advance(stop - first)
-        extras = {"active": np.broadcast_to(reports.active.astype(np.int8), (R, K)).copy(),
-                  "nis": nis, "nis_dof": np.broadcast_to(nis_dof, (R, K)).copy()}
-        return TrackEstimate(reports.time.copy(), states, covariances, extras, _time.perf_counter() - started)
+        return self._estimate(reports, states, covariances, nis, started)
 
     @staticmethod
     def _store(states, covariances, k, x, P) -> None:
