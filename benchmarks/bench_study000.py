@@ -4,6 +4,9 @@
 
 The spec's target: B (decoupled LOS filter, scalar per-axis MIE) costs at most half of A (coupled
 inertial filter, 3x3 MIE). Inputs are built from the experiment's own configs. Best of --repeat.
+A and A-full are timed with their numpy loops (``engine: numpy``), as B and C have no other: a
+comparison of the algorithms needs one technique. A's compiled loop (filters/mie_kernel.py, the
+default elsewhere) is the last row, against A's numpy loop.
 """
 
 from __future__ import annotations
@@ -41,8 +44,14 @@ def main() -> int:
             base = OmegaConf.load(conf / "filter" / f"{node.defaults[0]}.yaml")
             node = OmegaConf.merge(base, {k: v for k, v in node.items() if k != "defaults"})
         estimator = instantiate(node, _convert_="all")
+        if hasattr(estimator, "engine"):
+            estimator.engine = "numpy"
         seconds = min(estimator.run(series).compute_seconds for _ in range(args.repeat))
         rows.append({"filter": estimator.name, "seconds": seconds})
+        if key == "mie_a":
+            estimator.engine = "numba"
+            compiled = min(estimator.run(series).compute_seconds for _ in range(args.repeat))
+    rows.append({"filter": "A, compiled (engine: numba)", "seconds": compiled})
     reference = rows[0]["seconds"]
     print(f"Study 000, {args.runs} runs x {truth.time.size} scans, best of {args.repeat} (filtering only)\n")
     print("| filter | seconds | % of A |\n|---|---:|---:|")

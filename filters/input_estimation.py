@@ -55,7 +55,7 @@ from filters.coordinates import (converted_covariance, line_of_sight_angles, los
                                  polar_to_cartesian)
 from filters.kalman import einsum, rows_times
 from filters.models import singer_input_gain, singer_process_noise, singer_transition
-from filters.progress import counted
+from filters.progress import counted, current
 
 # (axis, kinematic) -> inertial output order (x, y, z, vx, vy, vz, ax, ay, az)
 _KIN_MAJOR = [a * 3 + kin for kin in range(3) for a in range(3)]
@@ -489,15 +489,24 @@ class InertialMIE(_MIEBase):
     """
 
     TESTS = ("per_axis_sum", "full")
+    ENGINES = ("numba", "numpy")
+    RUNS_PER_CALL = 8             # progress is told between calls of the compiled loop
 
     def __init__(self, name: str = "A", tau: float = 10.0, sigma_m: float = 5.0, window: int = 5,
                  min_samples: int = 3, threshold: float = 16.27,
                  test: Literal["per_axis_sum", "full"] = "per_axis_sum", rearm_after: int | None = None,
-                 level_uncertainty: bool = True, compensate: bool = True, level_correlation: bool = True) -> None:
+                 level_uncertainty: bool = True, compensate: bool = True, level_correlation: bool = True,
+                 engine: str = "numba") -> None:
         super().__init__(name, tau, sigma_m, window, min_samples, threshold, test, rearm_after, level_uncertainty,
                          compensate, level_correlation)
+        if engine not in self.ENGINES:
+            raise ValueError(f"engine: {engine!r} must be one of {list(self.ENGINES)} (numba: the compiled loop, "
+                             f"filters/mie_kernel.py; numpy: the vectorised scans, the reference)")
+        self.engine = engine
 
     def run(self, measurements: MeasurementSeries) -> TrackEstimate:
+        if self.engine == "numba":
+            return self._run_compiled(measurements)
         started = time.perf_counter()
         z, polar_var, dt = self._checked(measurements)
         self._model(dt)
@@ -563,6 +572,40 @@ class InertialMIE(_MIEBase):
             self._output(out_x, out_P, level_out, k, x, P, u)
         extras = {"input_level": level_out, "maneuver_detected": detected_out, "test_statistic": stat_out,
                   "onset_step": onset_out, **_nis_extras(einsum("rki,rkij,rkj->rk", nu_hist, sinv_hist, nu_hist), 3)}
+        out_x += self._radar_offset(measurements)
+        return TrackEstimate(measurements.time, out_x, out_P, extras, time.perf_counter() - started)
+
+    def _run_compiled(self, measurements: MeasurementSeries) -> TrackEstimate:
+        """``run`` through filters.mie_kernel.inertial_mie: each run's scans in one compiled loop (what
+        differs from the numpy loop: rounding, see that module)."""
+        from filters import mie_kernel
+
+        mie_kernel.warm_up()                    # numba's start before the clock: compute_seconds is the filtering's
+        started = time.perf_counter()
+        z, polar_var, dt = self._checked(measurements)
+        self._model(dt)
+        R, K, _ = z.shape
+        zI = np.ascontiguousarray(polar_to_cartesian(z), dtype=float)
+        RI = np.ascontiguousarray(converted_covariance(z, polar_var), dtype=float)
+        out_x = np.full((R, K, 9), np.nan)
+        out_P = np.full((R, K, 9, 9), np.nan)
+        level_out = np.zeros((R, K, 3))
+        detected_out = np.zeros((R, K), dtype=np.int8)
+        stat_out = np.full((R, K), np.nan)
+        onset_out = np.full((R, K), -1, dtype=np.int64)
+        nis = np.full((R, K), np.nan)
+        F, Q, G = (np.ascontiguousarray(a, dtype=float) for a in (self.F, self.Q, self.G))
+        progress = current()
+        progress.start(max(K - 2, 0), "scan", self.name)
+        for first in range(0, R, self.RUNS_PER_CALL):
+            stop = min(R, first + self.RUNS_PER_CALL)
+            mie_kernel.inertial_mie(first, stop, zI, RI, F, Q, G, float(dt), self.sigma_m, self._span,
+                                    self.min_samples, self.rearm_after, self.threshold, self.test == "full",
+                                    self.level_uncertainty, self.compensate, self.level_correlation,
+                                    out_x, out_P, level_out, detected_out, stat_out, onset_out, nis)
+            progress.advance(max(K - 2, 0) * (stop - first) / R)
+        extras = {"input_level": level_out, "maneuver_detected": detected_out, "test_statistic": stat_out,
+                  "onset_step": onset_out, **_nis_extras(nis, 3)}
         out_x += self._radar_offset(measurements)
         return TrackEstimate(measurements.time, out_x, out_P, extras, time.perf_counter() - started)
 
