@@ -154,6 +154,15 @@ class _MIEBase:
         return [d for d in range(self._span, self.min_samples - 1, -1) if k - d >= 1]
 
 
+def _outputs(R: int, K: int) -> tuple[np.ndarray, ...]:
+    """Every filter's per-scan outputs before any scan: state (R, K, 9) and covariance (R, K, 9, 9)
+    NaN until a scan fills them, input level (R, K, 3) zero, detections (R, K) and per-axis
+    detections (R, K, 3) none, test statistic NaN, onset -1."""
+    return (np.full((R, K, 9), np.nan), np.full((R, K, 9, 9), np.nan), np.zeros((R, K, 3)),
+            np.zeros((R, K), dtype=np.int8), np.zeros((R, K, 3), dtype=np.int8), np.full((R, K), np.nan),
+            np.full((R, K), -1, dtype=np.int64))
+
+
 class LOSMIE(_MIEBase):
     """Filters B and C: LOS decoupled tracking filter + per-axis modified input estimation.
 
@@ -200,13 +209,7 @@ class LOSMIE(_MIEBase):
         s_hist = np.ones((R, K, 3))
         r_hist = np.zeros((R, K, 3))
         gain_hist = np.zeros((R, K, 3, 3))
-        out_x = np.full((R, K, 9), np.nan)
-        out_P = np.full((R, K, 9, 9), np.nan)
-        level_out = np.zeros((R, K, 3))
-        detected_out = np.zeros((R, K), dtype=np.int8)
-        axis_out = np.zeros((R, K, 3), dtype=np.int8)
-        stat_out = np.full((R, K), np.nan)
-        onset_out = np.full((R, K), -1, dtype=np.int64)
+        out_x, out_P, level_out, detected_out, axis_out, stat_out, onset_out = _outputs(R, K)
 
         # ---- k = 1: two-point start in the LOS frame of z_I(1) (P's 3x3 blocks diagonal, eq 16 note)
         rng1, phi1, th1 = line_of_sight_angles(zI[:, 1])
@@ -285,13 +288,7 @@ class LOSMIE(_MIEBase):
         self._model(dt)
         R, K, _ = z.shape
         zI = np.ascontiguousarray(polar_to_cartesian(z), dtype=float)
-        out_x = np.full((R, K, 9), np.nan)
-        out_P = np.full((R, K, 9, 9), np.nan)
-        level_out = np.zeros((R, K, 3))
-        detected_out = np.zeros((R, K), dtype=np.int8)
-        axis_out = np.zeros((R, K, 3), dtype=np.int8)
-        stat_out = np.full((R, K), np.nan)
-        onset_out = np.full((R, K), -1, dtype=np.int64)
+        out_x, out_P, level_out, detected_out, axis_out, stat_out, onset_out = _outputs(R, K)
         nis = np.full((R, K), np.nan)
         F, Q, G = (np.ascontiguousarray(a, dtype=float) for a in (self.F, self.Q, self.G))
         polar_var = np.ascontiguousarray(polar_var, dtype=float)
@@ -573,12 +570,7 @@ class InertialMIE(_MIEBase):
         nu_hist = np.zeros((R, K, 3))
         sinv_hist = np.zeros((R, K, 3, 3))
         gain_hist = np.zeros((R, K, 9, 3))
-        out_x = np.full((R, K, 9), np.nan)
-        out_P = np.full((R, K, 9, 9), np.nan)
-        level_out = np.zeros((R, K, 3))
-        detected_out = np.zeros((R, K), dtype=np.int8)
-        stat_out = np.full((R, K), np.nan)
-        onset_out = np.full((R, K), -1, dtype=np.int64)
+        out_x, out_P, level_out, detected_out, _, stat_out, onset_out = _outputs(R, K)
 
         x = np.zeros((R, 9))
         x[:, pos] = zI[:, 1]
@@ -638,12 +630,7 @@ class InertialMIE(_MIEBase):
         R, K, _ = z.shape
         zI = np.ascontiguousarray(polar_to_cartesian(z), dtype=float)
         RI = np.ascontiguousarray(converted_covariance(z, polar_var), dtype=float)
-        out_x = np.full((R, K, 9), np.nan)
-        out_P = np.full((R, K, 9, 9), np.nan)
-        level_out = np.zeros((R, K, 3))
-        detected_out = np.zeros((R, K), dtype=np.int8)
-        stat_out = np.full((R, K), np.nan)
-        onset_out = np.full((R, K), -1, dtype=np.int64)
+        out_x, out_P, level_out, detected_out, _, stat_out, onset_out = _outputs(R, K)
         nis = np.full((R, K), np.nan)
         F, Q, G = (np.ascontiguousarray(a, dtype=float) for a in (self.F, self.Q, self.G))
         progress = current()
