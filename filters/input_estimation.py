@@ -79,10 +79,15 @@ class _MIEBase:
     accepts = frozenset({"range_azimuth_elevation"})   # converted in the filter (notes 2.1)
     name: str
     TESTS: tuple[str, ...] = ()
+    ENGINES = ("numba", "numpy")
+    RUNS_PER_CALL = 8             # progress is told between calls of the compiled loop
 
     def __init__(self, name: str, tau: float, sigma_m: float, window: int, min_samples: int, threshold: float,
                  test: str, rearm_after: int | None, level_uncertainty: bool, compensate: bool,
-                 level_correlation: bool) -> None:
+                 level_correlation: bool, engine: str = "numba") -> None:
+        if engine not in self.ENGINES:
+            raise ValueError(f"engine: {engine!r} must be one of {list(self.ENGINES)} (numba: the compiled loop, "
+                             f"filters/mie_kernel.py; numpy: the vectorised scans, the reference)")
         if test not in self.TESTS:
             raise ValueError(f"test: {test!r} is not one of {list(self.TESTS)}")
         if not (np.isfinite(tau) and tau > 0):
@@ -106,6 +111,44 @@ class _MIEBase:
         self.compensate = bool(compensate)
         self.level_correlation = bool(level_correlation)
         self.test = test
+        self.engine = engine
+
+    def _run_compiled(self, measurements: MeasurementSeries) -> TrackEstimate:
+        """``run`` through the filter's loop in filters.mie_kernel (``_compiled_loop``): each run's scans
+        in one compiled loop, a block of runs per call (what differs from the numpy scans: rounding,
+        see that module)."""
+        from filters import mie_kernel
+
+        mie_kernel.warm_up()                    # numba's start before the clock: compute_seconds is the filtering's
+        started = time.perf_counter()
+        z, polar_var, dt = self._checked(measurements)
+        self._model(dt)
+        R, K, _ = z.shape
+        outputs = _outputs(R, K)
+        nis = np.full((R, K), np.nan)
+        loop = self._compiled_loop(mie_kernel, z, polar_var, float(dt), outputs, nis)
+        progress = current()
+        progress.start(max(K - 2, 0), "scan", self.name)
+        for first in range(0, R, self.RUNS_PER_CALL):
+            stop = min(R, first + self.RUNS_PER_CALL)
+            loop(first, stop)
+            progress.advance(max(K - 2, 0) * (stop - first) / R)
+        out_x, out_P, level_out, detected_out, axis_out, stat_out, onset_out = outputs
+        extras = {"input_level": level_out, "maneuver_detected": detected_out, "test_statistic": stat_out,
+                  "onset_step": onset_out, **_nis_extras(nis, 3)}
+        if self.test == "per_axis":
+            extras["maneuver_detected_axis"] = axis_out
+        out_x += self._radar_offset(measurements)
+        return TrackEstimate(measurements.time, out_x, out_P, extras, time.perf_counter() - started)
+
+    def _compiled_loop(self, kernel, z: np.ndarray, polar_var: np.ndarray, dt: float, outputs: tuple, nis: np.ndarray):
+        """``loop(first, stop)``: the kernel's pass over runs first..stop-1, writing ``outputs`` (``_outputs``)
+        and ``nis``."""
+        raise NotImplementedError
+
+    def _kernel_model(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """One axis's Singer F, Q (3, 3) and G (3,) as the kernels take them."""
+        return tuple(np.ascontiguousarray(a, dtype=float) for a in (self.F, self.Q, self.G))
 
     def _model(self, dt: float) -> None:
         self.F = singer_transition(dt, self.tau)
@@ -172,8 +215,6 @@ class LOSMIE(_MIEBase):
     """
 
     TESTS = ("pooled", "per_axis")
-    ENGINES = ("numba", "numpy")
-    RUNS_PER_CALL = 8             # progress is told between calls of the compiled loop
 
     def __init__(self, name: str = "B", tau: float = 10.0, sigma_m: float = 5.0, window: int = 5,
                  min_samples: int = 3, threshold: float = 16.27, test: Literal["pooled", "per_axis"] = "pooled",
@@ -181,15 +222,11 @@ class LOSMIE(_MIEBase):
                  level_correlation: bool = True,
                  pseudo_residual_covariance: Literal["diagonal", "full"] = "diagonal", engine: str = "numba") -> None:
         super().__init__(name, tau, sigma_m, window, min_samples, threshold, test, rearm_after, level_uncertainty,
-                         compensate, level_correlation)
+                         compensate, level_correlation, engine)
         if pseudo_residual_covariance not in ("diagonal", "full"):
             raise ValueError(f"pseudo_residual_covariance: {pseudo_residual_covariance!r} is not one of "
                              f"['diagonal', 'full']")
-        if engine not in self.ENGINES:
-            raise ValueError(f"engine: {engine!r} must be one of {list(self.ENGINES)} (numba: the compiled loop, "
-                             f"filters/mie_kernel.py; numpy: the vectorised scans, the reference)")
         self.pseudo_residual_covariance = pseudo_residual_covariance
-        self.engine = engine
 
     def run(self, measurements: MeasurementSeries) -> TrackEstimate:
         # the compiled loop has the paper's diagonal pseudo-residual covariance; "full" (GLS) runs numpy
@@ -278,35 +315,14 @@ class LOSMIE(_MIEBase):
         out_x += self._radar_offset(measurements)
         return TrackEstimate(measurements.time, out_x, out_P, extras, time.perf_counter() - started)
 
-    def _run_compiled(self, measurements: MeasurementSeries) -> TrackEstimate:
-        """``run`` through filters.mie_kernel.los_mie: each run's scans in one compiled loop."""
-        from filters import mie_kernel
-
-        mie_kernel.warm_up()                    # numba's start before the clock: compute_seconds is the filtering's
-        started = time.perf_counter()
-        z, polar_var, dt = self._checked(measurements)
-        self._model(dt)
-        R, K, _ = z.shape
+    def _compiled_loop(self, kernel, z, polar_var, dt, outputs, nis):
         zI = np.ascontiguousarray(polar_to_cartesian(z), dtype=float)
-        out_x, out_P, level_out, detected_out, axis_out, stat_out, onset_out = _outputs(R, K)
-        nis = np.full((R, K), np.nan)
-        F, Q, G = (np.ascontiguousarray(a, dtype=float) for a in (self.F, self.Q, self.G))
+        F, Q, G = self._kernel_model()
         polar_var = np.ascontiguousarray(polar_var, dtype=float)
-        progress = current()
-        progress.start(max(K - 2, 0), "scan", self.name)
-        for first in range(0, R, self.RUNS_PER_CALL):
-            stop = min(R, first + self.RUNS_PER_CALL)
-            mie_kernel.los_mie(first, stop, zI, polar_var, F, Q, G, float(dt), self.sigma_m, self._span,
-                               self.min_samples, self.rearm_after, self.threshold, self.test == "per_axis",
-                               self.level_uncertainty, self.compensate, self.level_correlation,
-                               out_x, out_P, level_out, detected_out, axis_out, stat_out, onset_out, nis)
-            progress.advance(max(K - 2, 0) * (stop - first) / R)
-        extras = {"input_level": level_out, "maneuver_detected": detected_out, "test_statistic": stat_out,
-                  "onset_step": onset_out, **_nis_extras(nis, 3)}
-        if self.test == "per_axis":
-            extras["maneuver_detected_axis"] = axis_out
-        out_x += self._radar_offset(measurements)
-        return TrackEstimate(measurements.time, out_x, out_P, extras, time.perf_counter() - started)
+        return lambda first, stop: kernel.los_mie(
+            first, stop, zI, polar_var, F, Q, G, dt, self.sigma_m, self._span, self.min_samples, self.rearm_after,
+            self.threshold, self.test == "per_axis", self.level_uncertainty, self.compensate, self.level_correlation,
+            *outputs, nis)
 
     @staticmethod
     def _output(out_x, out_P, level_out, k, x, P, T, u) -> None:
@@ -537,8 +553,6 @@ class InertialMIE(_MIEBase):
     """
 
     TESTS = ("per_axis_sum", "full")
-    ENGINES = ("numba", "numpy")
-    RUNS_PER_CALL = 8             # progress is told between calls of the compiled loop
 
     def __init__(self, name: str = "A", tau: float = 10.0, sigma_m: float = 5.0, window: int = 5,
                  min_samples: int = 3, threshold: float = 16.27,
@@ -546,11 +560,7 @@ class InertialMIE(_MIEBase):
                  level_uncertainty: bool = True, compensate: bool = True, level_correlation: bool = True,
                  engine: str = "numba") -> None:
         super().__init__(name, tau, sigma_m, window, min_samples, threshold, test, rearm_after, level_uncertainty,
-                         compensate, level_correlation)
-        if engine not in self.ENGINES:
-            raise ValueError(f"engine: {engine!r} must be one of {list(self.ENGINES)} (numba: the compiled loop, "
-                             f"filters/mie_kernel.py; numpy: the vectorised scans, the reference)")
-        self.engine = engine
+                         compensate, level_correlation, engine)
 
     def run(self, measurements: MeasurementSeries) -> TrackEstimate:
         if self.engine == "numba":
@@ -618,34 +628,15 @@ class InertialMIE(_MIEBase):
         out_x += self._radar_offset(measurements)
         return TrackEstimate(measurements.time, out_x, out_P, extras, time.perf_counter() - started)
 
-    def _run_compiled(self, measurements: MeasurementSeries) -> TrackEstimate:
-        """``run`` through filters.mie_kernel.inertial_mie: each run's scans in one compiled loop (what
-        differs from the numpy loop: rounding, see that module)."""
-        from filters import mie_kernel
-
-        mie_kernel.warm_up()                    # numba's start before the clock: compute_seconds is the filtering's
-        started = time.perf_counter()
-        z, polar_var, dt = self._checked(measurements)
-        self._model(dt)
-        R, K, _ = z.shape
+    def _compiled_loop(self, kernel, z, polar_var, dt, outputs, nis):
         zI = np.ascontiguousarray(polar_to_cartesian(z), dtype=float)
-        RI = np.ascontiguousarray(converted_covariance(z, polar_var), dtype=float)
-        out_x, out_P, level_out, detected_out, _, stat_out, onset_out = _outputs(R, K)
-        nis = np.full((R, K), np.nan)
-        F, Q, G = (np.ascontiguousarray(a, dtype=float) for a in (self.F, self.Q, self.G))
-        progress = current()
-        progress.start(max(K - 2, 0), "scan", self.name)
-        for first in range(0, R, self.RUNS_PER_CALL):
-            stop = min(R, first + self.RUNS_PER_CALL)
-            mie_kernel.inertial_mie(first, stop, zI, RI, F, Q, G, float(dt), self.sigma_m, self._span,
-                                    self.min_samples, self.rearm_after, self.threshold, self.test == "full",
-                                    self.level_uncertainty, self.compensate, self.level_correlation,
-                                    out_x, out_P, level_out, detected_out, stat_out, onset_out, nis)
-            progress.advance(max(K - 2, 0) * (stop - first) / R)
-        extras = {"input_level": level_out, "maneuver_detected": detected_out, "test_statistic": stat_out,
-                  "onset_step": onset_out, **_nis_extras(nis, 3)}
-        out_x += self._radar_offset(measurements)
-        return TrackEstimate(measurements.time, out_x, out_P, extras, time.perf_counter() - started)
+        RI = np.ascontiguousarray(converted_covariance(z, polar_var), dtype=float)   # at the measured values
+        F, Q, G = self._kernel_model()
+        out_x, out_P, level_out, detected_out, _, stat_out, onset_out = outputs        # A has no per-axis test
+        return lambda first, stop: kernel.inertial_mie(
+            first, stop, zI, RI, F, Q, G, dt, self.sigma_m, self._span, self.min_samples, self.rearm_after,
+            self.threshold, self.test == "full", self.level_uncertainty, self.compensate, self.level_correlation,
+            out_x, out_P, level_out, detected_out, stat_out, onset_out, nis)
 
     @staticmethod
     def _output(out_x, out_P, level_out, k, x, P, u) -> None:

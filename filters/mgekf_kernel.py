@@ -115,7 +115,6 @@ def _bearing_only(x, P, n, bearing, variance, modified, form, clamp, gain, gP):
     else:
         g0, g1 = _bearing_row(px, py, bearing, form, clamp, math.sqrt(r2))
     residual = _wrap(bearing - math.atan2(px, py))
-    s = 0.0
     for i in range(n):
         gain[i] = P[i, 0] * h0 + P[i, 1] * h1                        # P h'
     s = gain[0] * h0 + gain[1] * h1 + variance
