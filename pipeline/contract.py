@@ -68,7 +68,8 @@ class RecordingInputs:
     experiment: str
     truth: "Truth"
     detections: "Detections"
-    estimates: Mapping[str, Any]              # variant key -> estimate, in display order
+    estimates: Mapping[str, Any]              # variant key -> estimate, in display order: the recorded
+    #                                           runs' rows only (pipeline.estimates.RecordedRuns; index by run)
     display_names: Mapping[str, str]
     metrics: "pl.DataFrame"
     record_runs: Sequence[int]
@@ -133,7 +134,9 @@ class Study(ABC):
                       per_variant: Mapping[str, tuple[str, dict[str, np.ndarray]]]) -> list[dict]:
         """Summary rows beyond the per-window means (``pipeline.evaluate.summary_row``; with a
         ``statistic``, a ``pipeline.uncertainty.WindowStatistic``, the row gets its interval and
-        paired comparison); ``per_variant`` holds each variant's per-step values. Default none."""
+        paired comparison); ``per_variant`` holds each variant's per-step values. ``estimates`` reads
+        each variant's table when asked and keeps only the last one read
+        (``pipeline.estimates.StoredEstimates``): go through them once. Default none."""
         return []
 
     @abstractmethod

@@ -236,9 +236,10 @@ SAME_AS_REFERENCE = "same as reference_key"
 
 
 def summary_rows(variants: Mapping[str, tuple[str, Mapping[str, RunValues | np.ndarray]]],
-                 estimates: Mapping[str, TrackEstimate], windows: Sequence[Window], reference_key: str | None,
+                 compute_seconds: Mapping[str, float], windows: Sequence[Window], reference_key: str | None,
                  runs: int, reached: tuple[str, int, int] | None = None, count_windows: Sequence[Window] = (),
-                 compute_reference: str | None = SAME_AS_REFERENCE) -> list[dict]:
+                 compute_reference: str | None = SAME_AS_REFERENCE,
+                 reached_fractions: Mapping[str, np.ndarray | None] | None = None) -> list[dict]:
     """Per variant: each per-step metric over each window (averaged; counts summed: the registry's
     aggregation, pipeline.metrics), the count metrics also over each of ``count_windows``, compute
     time (and as % of ``compute_reference``, by default the reference variant; none when it is None:
@@ -266,18 +267,18 @@ def summary_rows(variants: Mapping[str, tuple[str, Mapping[str, RunValues | np.n
             for metric, values in metrics.items():
                 if is_count(metric):
                     add(key, display, metric, w.name, values, w)
-        add(key, display, "compute_seconds", None, estimates[key].compute_seconds)
+        add(key, display, "compute_seconds", None, compute_seconds[key])
         if reached is not None:
             name, group, by_step = reached
-            fraction = group_reached(estimates[key], group, by_step)
+            fraction = (reached_fractions or {}).get(key)
             if fraction is not None:
                 add(key, display, "group_reached_fraction", f"{name} by step {by_step}",
                     RunValues(fraction[:, None], "mean"), Window("", 0, 0))
     if compute_reference is not None and compute_reference in variants:
-        ref_time = estimates[compute_reference].compute_seconds
+        ref_time = compute_seconds[compute_reference]
         of = f"% of {variants[compute_reference][0]}"
         for key, (display, metrics) in variants.items():
-            add(key, display, "compute_pct_of_reference", None, 100.0 * estimates[key].compute_seconds / ref_time)
+            add(key, display, "compute_pct_of_reference", None, 100.0 * compute_seconds[key] / ref_time)
             rows[-1]["unit"] = of
     if reference_key is not None and reference_key in variants:
         ref_models = {w.name: _models_per_step(variants[reference_key][1], w) for w in windows}

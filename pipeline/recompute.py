@@ -37,6 +37,7 @@ def recompute(run_dir: Path) -> tuple[pl.DataFrame, pl.DataFrame]:
     from omegaconf import OmegaConf
 
     from pipeline import schemas
+    from pipeline.estimates import StoredEstimates
     from pipeline.runner import evaluate_stage, prepare
     from pipeline.faults import fault_summary
     from pipeline.store import read_table
@@ -53,12 +54,15 @@ def recompute(run_dir: Path) -> tuple[pl.DataFrame, pl.DataFrame]:
     prepared = prepare(cfg)
     truth = schemas.truth_from_frame(*read_table(run_dir / "truth.parquet"))
     runs, steps = truth.runs, truth.time.size
-    estimates, display, faults = {}, {}, {}
-    for v in prepared.variants:
-        df, meta = read_table(run_dir / "estimates" / f"{v}.parquet")
-        estimates[v] = prepared.study.estimate_from_frame(df, {k: str(x) for k, x in meta.items()})
+    tables = {v: run_dir / "estimates" / f"{v}.parquet" for v in prepared.variants}
+    display, faults = {}, {}
+    for v, path in tables.items():
+        df, _ = read_table(path)
         display[v] = str(getattr(prepared.estimators[v], "name", v))
         faults[v] = fault_summary(flags_from_table(df, runs, steps))
+        del df
+    # read again one variant at a time, as the run held them (pipeline.estimates)
+    estimates = StoredEstimates(tables, prepared.study.estimate_from_frame)
     evaluated = evaluate_stage(cfg, prepared.study, prepared.sensor, truth, estimates, display, faults, runs)
     return evaluated.metrics, evaluated.summary
 

@@ -8,6 +8,7 @@ parameter re-uses the scenario and the measurements, and every variant sees iden
 
 from __future__ import annotations
 
+import contextlib
 import datetime as dt
 import json
 import logging
@@ -18,7 +19,7 @@ import traceback
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Mapping
 
 import polars as pl
 from hydra.types import RunMode
@@ -28,13 +29,14 @@ from pipeline import schemas
 from pipeline.contract import RecordingInputs, Study
 from pipeline.config import build, check_objective, compute_reference, flatten, selected_variants, validate
 from pipeline.errors import ConfigError
-from pipeline.evaluate import Window, metrics_frame, summary_row, summary_rows, summary_table
+from pipeline.estimates import StoredEstimates, recorded_runs
+from pipeline.evaluate import Window, group_reached, metrics_frame, summary_row, summary_rows, summary_table
 from pipeline.evaluate import resolved as per_step_values
 from pipeline.uncertainty import CONFIDENCE, RESAMPLES
 from pipeline.faults import FaultChecks, fault_summary
 from pipeline.memory import check as check_memory
 from pipeline.memory import own_peak_rss_mb
-from pipeline.metrics import unit_of, with_breakdown
+from pipeline.metrics import with_breakdown
 from pipeline.process import identity as process_identity
 from pipeline.progress import Reporter, choose_mode
 from pipeline.tables import ReportContext, format_summary
@@ -367,9 +369,16 @@ def run_experiment(cfg: DictConfig, ctx: RunContext) -> RunOutcome:
     # config subtree, its inputs' keys and the import closure of the code that makes its table
     outputs: dict[str, Any] = {}
     keys: dict[str, str] = {}
-    flags: dict[str, Any] = {}             # each track table's fault column (R, K); the tables themselves are let go
+    faults: dict[str, dict[str, int]] = {}
     cached: dict[str, bool] = {}
+    display = {v: str(getattr(estimators[v], "name", v)) for v in variants}
+    tables: dict[str, Path] = {}           # each variant's track table, read again only where asked
+    recorded: dict[str, Any] = {}          # each variant's recorded runs (pipeline.estimates)
+    record_runs = ([cfg.record.runs] if isinstance(cfg.record.runs, int) else list(cfg.record.runs)) \
+        if cfg.record.enabled else []
+    evaluation: Evaluation | None = None
     declared, track_input = declare_stages(cfg, resolved, prepared, build_fault_checks(cfg))
+    read_later = {name for stage in declared for name in stage.inputs}
     chunk_runs = cfg.mc.get("chunk_runs")
     for stage in declared:
         inputs = {name: outputs[name] for name in stage.inputs}
@@ -381,36 +390,34 @@ def run_experiment(cfg: DictConfig, ctx: RunContext) -> RunOutcome:
             _progress_label(stage, inputs, prepared),
             math.ceil(runs / chunk_runs) if stage.chunks is not None else 1)
         keys[stage.output] = key
-        if stage.cache == "track":
-            flags[stage.output] = flags_from_table(table, runs, outputs["truth"].time.size)
-        del table
+        del inputs
         if stage.output == "truth":       # the windows must fit the scenario before any filtering
             for which in ("windows", "count_windows"):
                 _windows(cfg, which, outputs["truth"].time.size, warn=True)
+        if stage.cache == "track" and stage.output[len("estimates/"):] in estimators:
+            # measured now and let go: a job holds one variant's estimate at a time (pipeline.estimates)
+            v = stage.output[len("estimates/"):]
+            estimate = outputs[stage.output] if stage.output in read_later else outputs.pop(stage.output)
+            truth = outputs["truth"]
+            faults[v] = _track_done(v, display[v], estimate, table, cached[stage.output], runs, truth.time.size)
+            if evaluation is None:
+                evaluation = Evaluation(cfg, study, sensor, truth, runs)
+            evaluation.add(v, display[v], estimate)
+            if record_runs:
+                recorded[v] = recorded_runs(estimate, record_runs, runs)
+            tables[v] = inside(ctx.run_dir, stage.publish_as)
+            del estimate
+        del table
     truth = outputs["truth"]
     detections = outputs["detections"]
     K = truth.time.size
-    faults: dict[str, dict[str, int]] = {}
-    estimates: dict[str, Any] = {}
-    display: dict[str, str] = {}
-    for v in variants:
-        estimate, hit = outputs[f"estimates/{v}"], cached[f"estimates/{v}"]
-        if not hit:
-            per_step = getattr(estimate, "extras", {}).get("models_evaluated")
-            models = f", {per_step[:, 2:].mean():.2f} models/step" if per_step is not None and K > 2 else ""
-            log.info("[track] %s filtered in %.3f s%s", getattr(estimators[v], "name", v), estimate.compute_seconds,
-                     models)
-        estimates[v] = estimate
-        display[v] = str(getattr(estimators[v], "name", v))
-        faults[v] = fault_summary(flags[f"estimates/{v}"])
-        if faults[v]["diverged_runs"]:
-            log.warning("[track] %s: %d of %d runs hit a numerical fault (%s); their rows are flagged in "
-                        "estimates/%s.parquet (column fault)", display[v], faults[v]["diverged_runs"], runs,
-                        ", ".join(f"{name[len('fault_runs_'):]}: {count}" for name, count in faults[v].items()
-                                  if name.startswith("fault_runs_") and count), v)
+    if evaluation is None:
+        evaluation = Evaluation(cfg, study, sensor, truth, runs)
+    estimates = StoredEstimates(tables, study.estimate_from_frame)
     started = time.perf_counter()
     with progress.task(f"[evaluate] {len(variants)} variants x {K} steps"):   # the bootstrap reports its metrics
-        evaluated = evaluate_stage(cfg, study, sensor, truth, estimates, display, faults, runs)
+        evaluated = evaluation.finish(estimates, faults)
+    estimates.release()
     metrics, summary = evaluated.metrics, evaluated.summary
     summary = summary.with_columns(pl.col("variant_key").replace_strict(
         {v: cached[f"estimates/{v}"] for v in variants}, return_dtype=pl.Boolean).alias("estimates_from_cache"))
@@ -428,15 +435,16 @@ def run_experiment(cfg: DictConfig, ctx: RunContext) -> RunOutcome:
                          ctx.run_dir / "per_run.parquet", {**schemas.table_metadata("per_run", {}, {}), **provenance})
     atomic_write_parquet(evaluated.resamples, ctx.run_dir / "resamples.parquet",
                          {**schemas.table_metadata("resamples", {}, {}), **provenance})
-    log.info("[evaluate] metrics for %d variants x %d steps, %.2f s", len(variants), K, time.perf_counter() - started)
+    # the evaluate stage's time: each variant measured after its track stage, then the summary
+    log.info("[evaluate] metrics for %d variants x %d steps, %.2f s", len(variants), K,
+             evaluation.measuring_seconds + time.perf_counter() - started)
 
     if cfg.record.enabled:
         started = time.perf_counter()
-        record_runs = list(cfg.record.runs) if not isinstance(cfg.record.runs, int) else [cfg.record.runs]
         # no count measures a recording: it shows its time so far (and a filter re-run for it, its scans)
         with progress.task("[record] recording.rrd", units=None):
             study.record(ctx.run_dir / "recording.rrd", RecordingInputs(
-                experiment=experiment, truth=truth, detections=detections, estimates=estimates, display_names=display,
+                experiment=experiment, truth=truth, detections=detections, estimates=recorded, display_names=display,
                 metrics=metrics, record_runs=record_runs, sensor=sensor, estimators=estimators,
                 track_input=track_input(truth, detections),     # the filters' view (made once), for re-runs
                 seed=seed, config_text=OmegaConf.to_yaml(cfg, resolve=True),
@@ -451,6 +459,22 @@ def run_experiment(cfg: DictConfig, ctx: RunContext) -> RunOutcome:
     write_status(ctx, experiment, "ok", config_hash=config_hash, runs=runs)
     log.info("done in %.2f s", time.perf_counter() - total_started)
     return RunOutcome(summary, metrics, text, evaluated.comparisons)
+
+
+def _track_done(key: str, display: str, estimate: Any, table: pl.DataFrame, hit: bool, runs: int, steps: int
+                ) -> dict[str, int]:
+    """A variant's track stage done: its filtering time and fault counts logged; the fault counts."""
+    if not hit:
+        per_step = getattr(estimate, "extras", {}).get("models_evaluated")
+        models = f", {per_step[:, 2:].mean():.2f} models/step" if per_step is not None and steps > 2 else ""
+        log.info("[track] %s filtered in %.3f s%s", display, estimate.compute_seconds, models)
+    faults = fault_summary(flags_from_table(table, runs, steps))
+    if faults["diverged_runs"]:
+        log.warning("[track] %s: %d of %d runs hit a numerical fault (%s); their rows are flagged in "
+                    "estimates/%s.parquet (column fault)", display, faults["diverged_runs"], runs,
+                    ", ".join(f"{name[len('fault_runs_'):]}: {count}" for name, count in faults.items()
+                              if name.startswith("fault_runs_") and count), key)
+    return faults
 
 
 def job_header(text: str, ctx: RunContext) -> str:
@@ -475,52 +499,92 @@ class Evaluated:
     resamples: pl.DataFrame | None = None
 
 
-def evaluate_stage(cfg: DictConfig, study: Study, sensor: Any, truth: Any, estimates: dict[str, Any],
+class Evaluation:
+    """The evaluate stage, fed one variant at a time (``add``, as soon as its estimate exists, which
+    can then be let go: pipeline.estimates) and finished once every variant is in (``finish``). It
+    keeps each variant's per-step metrics (per run where a summary interval needs them), compute
+    time and group-reached flags, not its estimate. A bound that cannot be inverted
+    (``filters.bounds.SingularBoundWarning``) is logged once, at the end."""
+
+    def __init__(self, cfg: DictConfig, study: Study, sensor: Any, truth: Any, runs: int) -> None:
+        self.cfg, self.study, self.sensor, self.truth, self.runs = cfg, study, sensor, truth, runs
+        self.metrics: dict[str, tuple[str, dict[str, Any]]] = {}
+        self.compute_seconds: dict[str, float] = {}
+        self.reached_fractions: dict[str, Any] = {}
+        self.reached = None
+        gr = cfg.metrics.get("group_reached")            # checked by validate()
+        if gr:
+            self.reached = (str(gr.group), list(cfg.models.groups.keys()).index(gr.group), int(gr.by_step))
+        self._warnings: list[warnings.WarningMessage] = []
+        self.measuring_seconds = 0.0                     # spent in ``add``, between the track stages
+
+    @contextlib.contextmanager
+    def _catching(self):
+        from filters.bounds import SingularBoundWarning
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always", SingularBoundWarning)
+            yield
+        self._warnings += [w for w in caught if issubclass(w.category, SingularBoundWarning)]
+        for w in caught:
+            if not issubclass(w.category, SingularBoundWarning):
+                warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+
+    def add(self, key: str, display: str, estimate: Any) -> None:
+        """Measure one variant's estimate (against the truth, with the study's metrics)."""
+        started = time.perf_counter()
+        with self._catching():
+            self.metrics[key] = (display, self.study.per_step_metrics(self.truth, estimate, self.sensor))
+            self.compute_seconds[key] = float(estimate.compute_seconds)
+            if self.reached is not None:
+                self.reached_fractions[key] = group_reached(estimate, self.reached[1], self.reached[2])
+        self.measuring_seconds += time.perf_counter() - started
+
+    def finish(self, estimates: Mapping[str, Any], faults: dict[str, dict[str, int]]) -> Evaluated:
+        """The tables, once every variant is in; ``estimates`` (variant key -> estimate, e.g. a
+        ``pipeline.estimates.StoredEstimates``) serves the study's own summary rows."""
+        cfg, runs = self.cfg, self.runs
+        variants = list(self.metrics)
+        display = {v: name for v, (name, _) in self.metrics.items()}
+        K = self.truth.time.size
+        with self._catching():
+            ref = cfg.metrics.get("reference_variant")
+            ref = ref if ref in variants else None
+            rows = summary_rows(self.metrics, self.compute_seconds, _windows(cfg, "windows", K), ref, runs,
+                                self.reached, _windows(cfg, "count_windows", K),
+                                compute_reference(cfg),       # compute time as % of it (pipeline.config)
+                                self.reached_fractions)
+            # a study's own rows read the per-step values (a RunValues resolved to its value over the runs)
+            per_step = {v: (name, per_step_values(metrics)) for v, (name, metrics) in self.metrics.items()}
+            rows += [row if "statistic" in row else row | {"statistic": None}
+                     for row in self.study.extra_summary(self.truth, estimates, display, runs, ref, self.sensor,
+                                                         per_step)]
+            rows += [summary_row(v, display[v], name, None, float(count), runs) for v in variants
+                     for name, count in faults[v].items()]
+            uncertainty = cfg.get("uncertainty") or {}
+            summary, comparisons, per_run, resamples = summary_table(
+                rows, ref, int(cfg.mc.seed), float(uncertainty.get("confidence", CONFIDENCE)),
+                int(uncertainty.get("bootstrap_resamples", RESAMPLES)))
+            metrics = metrics_frame(self.truth.time, self.metrics, runs)
+        # a bound that cannot be inverted is NaN from that scan (filters.bounds): said once, in the log
+        for message in dict.fromkeys(str(w.message) for w in self._warnings):
+            log.warning("[evaluate] %s: position_bound and its ratios are NaN there; the metrics go on", message)
+        self._warnings = []
+        # the tidy columns metric (the quantity), component, sensor, target (pipeline.metrics.breakdown)
+        return Evaluated(with_breakdown(metrics), with_breakdown(summary), with_breakdown(comparisons),
+                         with_breakdown(per_run), resamples)
+
+
+def evaluate_stage(cfg: DictConfig, study: Study, sensor: Any, truth: Any, estimates: Mapping[str, Any],
                    display: dict[str, str], faults: dict[str, dict[str, int]], runs: int) -> Evaluated:
     """The evaluate stage's tables of every variant, from the truth, the estimates as their tables hold
-    them, the fault counts of their tables, and the built sensor and study: the run computes them, and
-    ``python -m pipeline.recompute`` recomputes a stored run's from its files alone."""
-    from filters.bounds import SingularBoundWarning
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always", SingularBoundWarning)
-        tables = _evaluate(cfg, study, sensor, truth, estimates, display, faults, runs)
-    # a bound that cannot be inverted is NaN from that scan (filters.bounds): said once, in the log
-    for message in dict.fromkeys(str(w.message) for w in caught if issubclass(w.category, SingularBoundWarning)):
-        log.warning("[evaluate] %s: position_bound and its ratios are NaN there; the metrics go on", message)
-    for w in caught:
-        if not issubclass(w.category, SingularBoundWarning):
-            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
-    return tables
-
-
-def _evaluate(cfg: DictConfig, study: Study, sensor: Any, truth: Any, estimates: dict[str, Any],
-              display: dict[str, str], faults: dict[str, dict[str, int]], runs: int) -> Evaluated:
-    variants = list(estimates)
-    K = truth.time.size
-    per_variant = {v: (display[v], study.per_step_metrics(truth, estimates[v], sensor)) for v in variants}
-    windows = _windows(cfg, "windows", K)
-    count_windows = _windows(cfg, "count_windows", K)
-    reached = None
-    gr = cfg.metrics.get("group_reached")            # checked by validate()
-    if gr:
-        reached = (str(gr.group), list(cfg.models.groups.keys()).index(gr.group), int(gr.by_step))
-    ref = cfg.metrics.get("reference_variant")
-    ref = ref if ref in variants else None
-    rows = summary_rows(per_variant, estimates, windows, ref, runs, reached, count_windows,
-                        compute_reference(cfg))       # compute time as % of it (pipeline.config)
-    # a study's own rows read the per-step values (a RunValues resolved to its value over the runs)
-    per_step = {v: (name, per_step_values(metrics)) for v, (name, metrics) in per_variant.items()}
-    rows += [row if "statistic" in row else row | {"statistic": None}
-             for row in study.extra_summary(truth, estimates, display, runs, ref, sensor, per_step)]
-    rows += [summary_row(v, display[v], name, None, float(count), runs) for v in variants
-             for name, count in faults[v].items()]
-    uncertainty = cfg.get("uncertainty") or {}
-    summary, comparisons, per_run, resamples = summary_table(
-        rows, ref, int(cfg.mc.seed), float(uncertainty.get("confidence", CONFIDENCE)),
-        int(uncertainty.get("bootstrap_resamples", RESAMPLES)))
-    # the tidy columns metric (the quantity), component, sensor, target (pipeline.metrics.breakdown)
-    return Evaluated(with_breakdown(metrics_frame(truth.time, per_variant, runs)), with_breakdown(summary),
-                     with_breakdown(comparisons), with_breakdown(per_run), resamples)
+    them (a dict, or a ``pipeline.estimates.StoredEstimates`` that reads them one at a time), the fault
+    counts of their tables, and the built sensor and study: ``python -m pipeline.recompute``
+    recomputes a stored run's from its files alone (a run measures each variant as its track stage
+    ends: ``Evaluation``)."""
+    evaluation = Evaluation(cfg, study, sensor, truth, runs)
+    for v, estimate in estimates.items():
+        evaluation.add(v, display[v], estimate)
+    return evaluation.finish(estimates, faults)
 
 
 def _progress_label(stage: Any, inputs: dict[str, Any], prepared: Prepared) -> str:

@@ -5,7 +5,6 @@ compute reference is chosen per study (``metrics.compute_reference``, by default
 from __future__ import annotations
 
 from pathlib import Path
-from types import SimpleNamespace
 
 import numpy as np
 import polars as pl
@@ -32,9 +31,8 @@ def _compose(experiment: str):
 def _rows(**kwargs) -> pl.DataFrame:
     variants = {key: (display, {"models_evaluated": np.full(5, models)})
                 for key, display, models in (("ekf", "EKF", 1.0), ("ammpf", "AMMPF", 4.0), ("sir_mm", "SIR-MM", 2.0))}
-    estimates = {"ekf": SimpleNamespace(compute_seconds=0.01), "ammpf": SimpleNamespace(compute_seconds=5.0),
-                 "sir_mm": SimpleNamespace(compute_seconds=2.5)}
-    rows = summary_rows(variants, estimates, [Window("all", 0, 4)], "ekf", 3, **kwargs)
+    compute_seconds = {"ekf": 0.01, "ammpf": 5.0, "sir_mm": 2.5}
+    rows = summary_rows(variants, compute_seconds, [Window("all", 0, 4)], "ekf", 3, **kwargs)
     return pl.DataFrame([{k: v for k, v in r.items() if k != "statistic"} for r in rows])
 
 

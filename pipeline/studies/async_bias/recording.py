@@ -102,8 +102,10 @@ def _grid_steps(grid: np.ndarray, times: np.ndarray, what: str) -> np.ndarray:
     return index.astype(np.int64)
 
 
-def _has_bias(est: BiasRegistrationResult) -> bool:
-    return bool(np.isfinite(np.asarray(est.bias)).any())
+def _has_bias(est: BiasRegistrationResult, runs: Sequence[int]) -> bool:
+    """Whether the variant estimates biases, read off the recorded ``runs`` (the only ones a recording
+    holds: pipeline.estimates)."""
+    return any(bool(np.isfinite(np.asarray(est.bias[r])).any()) for r in runs)
 
 
 def _check_inputs(truth: Truth, detections: Detections, estimates: Mapping[str, BiasRegistrationResult],
@@ -258,7 +260,7 @@ def write_bias_recording(path: Path, *, experiment: str, truth: Truth, detection
     variant_keys = list(estimates)
     colours = {key: variant_colour(i) for i, key in enumerate(variant_keys)}
     display = {key: str(display_names.get(key, key)) for key in variant_keys}
-    bias_keys = [key for key in variant_keys if _has_bias(estimates[key])]
+    bias_keys = [key for key in variant_keys if _has_bias(estimates[key], record_runs)]
     metric_series = _styled_metric_series(metric_time_series(metrics, experiment, variant_keys, display, colours))
     bands = _chi2_bands(metrics, metric_series, S)
 
@@ -351,7 +353,7 @@ def _log_run(rr, rec, times, ui, r: int, truth: Truth, truth_xy: list[int], dete
     # ---- per variant and radar: biased / compensated tracks of the kept targets ---------------
     for key, est in estimates.items():
         steps_of = est_steps[key]
-        has_bias = _has_bias(est)
+        has_bias = _has_bias(est, [r])
         for n in range(S):
             rows = np.nonzero(np.asarray(est.sensor) == n)[0]
             if not rows.size:
@@ -440,7 +442,7 @@ def _bias_blueprint(rrb, truth: Truth, truth_xy: list[int], positions: np.ndarra
 
         def tracks(keys):               # the track entities of these variants (time-ranged: up to now)
             return [f"{world}/{k}/radar{n + 1}/{kind}/track" for k in keys for n in range(S)
-                    for kind in (KINDS if _has_bias(estimates[k]) else KINDS[:1])]
+                    for kind in (KINDS if _has_bias(estimates[k], [r0]) else KINDS[:1])]
 
         xy = np.concatenate([np.asarray(truth.state[r0], dtype=np.float64)[..., truth_xy].reshape(-1, 2), positions])
         xy = xy[np.isfinite(xy).all(-1)]
