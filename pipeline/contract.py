@@ -12,8 +12,10 @@ runner (pipeline.runner) calls exactly these hooks, in this order:
    the track stage's table (named ``estimate_table``) and its ``fault`` column;
    ``estimate_from_frame(df, metadata)`` reads it back (a cached stage, and later stages, see
    exactly what the table holds).
-4. ``per_step_metrics(truth, estimate, sensor)`` per variant, then ``extra_summary(...)`` for
-   summary rows beyond the per-window means. A Monte Carlo metric is returned per run
+4. per variant as soon as its track stage ends, ``per_step_metrics(truth, estimate, sensor)`` and
+   ``variant_summary(...)`` (its own summary rows beyond the per-window means); the estimate is then
+   let go (a job holds one at a time: pipeline.estimates). Once every variant is in,
+   ``extra_summary(...)`` for rows across variants. A Monte Carlo metric is returned per run
    (``pipeline.uncertainty.RunValues``): its value over the runs per step, the summary's interval
    across runs, the paired comparisons and the per-run table all come from it; a plain (K,) array
    is a fixed value (a bound, a chi-square band) without an interval. Every metric name is in the
@@ -129,14 +131,22 @@ class Study(ABC):
         """metric name -> ``RunValues`` (R, K): each run's contribution per step and how runs combine
         (rms, mean, sum, median), or a fixed (K,) array over the truth's steps."""
 
+    def variant_summary(self, truth: "Truth", key: str, display: str, estimate: Any, runs: int, sensor: Any,
+                        metrics: Mapping[str, Any]) -> list[dict]:
+        """One variant's summary rows beyond the per-window means (``pipeline.evaluate.summary_row``;
+        with a ``statistic``, a ``pipeline.uncertainty.WindowStatistic``, the row gets its interval and
+        paired comparison), computed while its ``estimate`` is in memory; ``metrics``: its
+        ``per_step_metrics``. Default none."""
+        return []
+
     def extra_summary(self, truth: "Truth", estimates: Mapping[str, Any], display: Mapping[str, str], runs: int,
                       reference: str | None, sensor: Any,
                       per_variant: Mapping[str, tuple[str, dict[str, np.ndarray]]]) -> list[dict]:
-        """Summary rows beyond the per-window means (``pipeline.evaluate.summary_row``; with a
-        ``statistic``, a ``pipeline.uncertainty.WindowStatistic``, the row gets its interval and
-        paired comparison); ``per_variant`` holds each variant's per-step values. ``estimates`` reads
-        each variant's table when asked and keeps only the last one read
-        (``pipeline.estimates.StoredEstimates``): go through them once. Default none."""
+        """Summary rows across variants (e.g. a ratio to the ``reference`` variant), rows as in
+        ``variant_summary``, after every variant's; ``per_variant`` holds each variant's per-step
+        values. ``estimates`` reads each variant's table again when asked and keeps only the last one
+        read (``pipeline.estimates.StoredEstimates``): go through them once, or keep what these rows
+        need from ``variant_summary`` instead of reading them again. Default none."""
         return []
 
     @abstractmethod

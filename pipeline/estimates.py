@@ -6,8 +6,10 @@ track stage to the recording made a job's peak grow with its number of variants.
 
 - the evaluation measures each variant as soon as its track stage is done, then lets it go
   (``pipeline.runner.Evaluation``);
-- a study hook that reads all variants (``Study.extra_summary``) gets ``StoredEstimates``, which
-  reads a variant's table when asked and keeps only the last one read;
+- a study's own summary rows of a variant come from ``Study.variant_summary``, called then too;
+  its rows across variants (``Study.extra_summary``) get ``StoredEstimates``, which reads a
+  variant's table again when asked and keeps only the last one read (the shipped studies keep
+  what they need from ``variant_summary`` instead, and read nothing again);
 - the recording gets ``recorded_runs`` of each estimate: the recorded runs' rows only, standing
   in for the whole arrays (``RecordedRuns``), made while the variant is in memory anyway.
 """

@@ -511,6 +511,7 @@ class Evaluation:
         self.metrics: dict[str, tuple[str, dict[str, Any]]] = {}
         self.compute_seconds: dict[str, float] = {}
         self.reached_fractions: dict[str, Any] = {}
+        self.variant_rows: list[dict] = []               # the study's variant_summary rows, in variant order
         self.reached = None
         gr = cfg.metrics.get("group_reached")            # checked by validate()
         if gr:
@@ -533,7 +534,10 @@ class Evaluation:
         """Measure one variant's estimate (against the truth, with the study's metrics)."""
         started = time.perf_counter()
         with self._catching():
-            self.metrics[key] = (display, self.study.per_step_metrics(self.truth, estimate, self.sensor))
+            metrics = self.study.per_step_metrics(self.truth, estimate, self.sensor)
+            self.metrics[key] = (display, metrics)
+            self.variant_rows += self.study.variant_summary(self.truth, key, display, estimate, self.runs,
+                                                            self.sensor, metrics)
             self.compute_seconds[key] = float(estimate.compute_seconds)
             if self.reached is not None:
                 self.reached_fractions[key] = group_reached(estimate, self.reached[1], self.reached[2])
@@ -555,9 +559,9 @@ class Evaluation:
                                 self.reached_fractions)
             # a study's own rows read the per-step values (a RunValues resolved to its value over the runs)
             per_step = {v: (name, per_step_values(metrics)) for v, (name, metrics) in self.metrics.items()}
-            rows += [row if "statistic" in row else row | {"statistic": None}
-                     for row in self.study.extra_summary(self.truth, estimates, display, runs, ref, self.sensor,
-                                                         per_step)]
+            study_rows = self.variant_rows + self.study.extra_summary(self.truth, estimates, display, runs, ref,
+                                                                      self.sensor, per_step)
+            rows += [row if "statistic" in row else row | {"statistic": None} for row in study_rows]
             rows += [summary_row(v, display[v], name, None, float(count), runs) for v in variants
                      for name, count in faults[v].items()]
             uncertainty = cfg.get("uncertainty") or {}

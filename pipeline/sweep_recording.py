@@ -42,9 +42,16 @@ MAX_ALL_SERIES = 6
 LIGHTEST_SHADE = 0.6            # the last job's line: this far from the variant's colour towards white
 
 
+# what a line needs of a job's metrics table; the names as categories: a paper-size sweep's tables,
+# read whole, held ~500 MB at once (study 003's 600 060 rows each, mostly provenance strings)
+LINE_COLUMNS = {"series": pl.Categorical, "variant_key": pl.Categorical, "variant": pl.Categorical,
+                "step": None, "time": None, "value": None}
+
+
 def job_metrics(sweep: Sweep) -> dict[str, pl.DataFrame]:
-    """Job label -> its metrics.parquet (checksum verified), for the finished jobs; a job whose table
-    is missing or damaged is left out with a warning, as in the sweep summary."""
+    """Job label -> the columns of its metrics.parquet that a line draws (``LINE_COLUMNS``; the table
+    checksum verified whole), for the finished jobs; a job whose table is missing or damaged is left
+    out with a warning, as in the sweep summary."""
     from pipeline.store import read_table
 
     out = {}
@@ -53,9 +60,13 @@ def job_metrics(sweep: Sweep) -> dict[str, pl.DataFrame]:
         if job.status.get("status") != "ok" or not path.is_file():
             continue
         try:
-            out[job.label] = read_table(path)[0]
+            frame = read_table(path)[0]
         except Exception as exc:  # noqa: BLE001 - damaged (checksum) or unreadable: this job's lines are left out, named
             log.warning("skipped %s: %s", path, exc)
+            continue
+        out[job.label] = frame.select([pl.col(name) if dtype is None else pl.col(name).cast(dtype)
+                                       for name, dtype in LINE_COLUMNS.items() if name in frame.columns])
+        del frame
     return out
 
 

@@ -27,7 +27,8 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from pipeline.evaluate import consistency, summary_row
+from pipeline.bounds import PerTruth
+from pipeline.evaluate import consistency, resolved, summary_row
 from pipeline.uncertainty import RunValues, WindowStatistic
 from pipeline.metrics import BAND, Metric, nees, register, unit_of
 from pipeline.studies.adsb.flight import MANEUVER_NAMES
@@ -77,6 +78,7 @@ class FlightStudy(SingleTargetStudy):
         if isinstance(first_scan, bool) or not isinstance(first_scan, int) or first_scan < 0:
             raise ValueError(f"first_scan: {first_scan!r} must be an integer >= 0")
         self.first_scan = first_scan
+        self._radar = PerTruth()           # the radar's own RMSE: once per truth, not once per variant
 
     def record(self, path, inputs) -> None:
         """Study 000's 3-D recording plus the maneuver class on the timeline and a map of run 0 (the
@@ -103,39 +105,38 @@ class FlightStudy(SingleTargetStudy):
         out.update(consistency("nees_position_velocity", nees(error, covariance), len(index)))
         return out
 
-    def extra_summary(self, truth, estimates: Mapping[str, Any], display: Mapping[str, str], runs: int,
-                      reference: str | None, sensor,
-                      per_variant: Mapping[str, tuple[str, dict[str, np.ndarray]]]) -> list[dict]:
+    def variant_summary(self, truth, key: str, display: str, estimate, runs: int, sensor,
+                        metrics: Mapping[str, Any]) -> list[dict]:
         labels = np.asarray(truth.labels["maneuver"])[0, :, 0]
         counted = np.arange(labels.size) >= self.first_scan
         names = truth.state_names
         position = [names.index(n) for n in ("x", "y", "z") if n in names]
         velocity = [names.index(n) for n in ("vx", "vy", "vz") if n in names]
         rows: list[dict] = []
-        radar = radar_position_rmse(truth, sensor, self.first_scan)
+        radar = self._radar.get(truth, sensor, "radar", lambda: radar_position_rmse(truth, sensor, self.first_scan))
 
-        def add(key: str, series: str, value: float | None) -> None:
-            rows.append({"variant": display[key], "variant_key": key, "series": series, "window": None,
+        def add(series: str, value: float | None) -> None:
+            rows.append({"variant": display, "variant_key": key, "series": series, "window": None,
                          "value": None if value is None or not np.isfinite(value) else float(value),
                          "unit": unit_of(series), "n_runs": runs})
 
-        for key, estimate in estimates.items():
-            add(key, "radar_position_rmse", radar)
-            squared = {
-                "position": np.sum((estimate.state[..., position] - truth.state[:, :, 0, position]) ** 2, axis=-1),
-                "velocity": np.sum((estimate.state[..., velocity] - truth.state[:, :, 0, velocity]) ** 2, axis=-1),
-            }
-            for code, name in enumerate(MANEUVER_NAMES):
-                scans = counted & (labels == code)
-                add(key, f"scans_{name}", float(scans.sum()))
-                for quantity, values in squared.items():
-                    # pooled over the runs and the class's scans (None when the flight has none)
-                    statistic = WindowStatistic(RunValues(values, "rms"), np.nonzero(scans)[0], "pool")
-                    rows.append(summary_row(key, display[key], f"{quantity}_rmse_{name}", None, None, runs,
-                                            statistic if scans.any() else None))
-            metrics = per_variant[key][1]
-            mean, lower, upper = (metrics[f"nees_position_velocity{s}"][counted] for s in ("", "_lower", "_upper"))
-            valid = np.isfinite(mean)
-            inside = (mean >= lower) & (mean <= upper)
-            add(key, "nees_position_velocity_in_band", float(inside[valid].mean()) if valid.any() else None)
+        add("radar_position_rmse", radar)
+        squared = {
+            "position": np.sum((estimate.state[..., position] - truth.state[:, :, 0, position]) ** 2, axis=-1),
+            "velocity": np.sum((estimate.state[..., velocity] - truth.state[:, :, 0, velocity]) ** 2, axis=-1),
+        }
+        for code, name in enumerate(MANEUVER_NAMES):
+            scans = counted & (labels == code)
+            add(f"scans_{name}", float(scans.sum()))
+            for quantity, values in squared.items():
+                # pooled over the runs and the class's scans (None when the flight has none)
+                statistic = WindowStatistic(RunValues(values, "rms"), np.nonzero(scans)[0], "pool")
+                rows.append(summary_row(key, display, f"{quantity}_rmse_{name}", None, None, runs,
+                                        statistic if scans.any() else None))
+        per_step = resolved({f"nees_position_velocity{s}": metrics[f"nees_position_velocity{s}"]
+                             for s in ("", "_lower", "_upper")})
+        mean, lower, upper = (per_step[f"nees_position_velocity{s}"][counted] for s in ("", "_lower", "_upper"))
+        valid = np.isfinite(mean)
+        inside = (mean >= lower) & (mean <= upper)
+        add("nees_position_velocity_in_band", float(inside[valid].mean()) if valid.any() else None)
         return rows

@@ -22,7 +22,7 @@ from filters.bounds import posterior_crlb
 from filters.mgekf import STATE_NAMES, SonarReports, jacobian_rows, relative_motion_model
 from pipeline import schemas
 from pipeline.contract import RecordingInputs, Study
-from pipeline.metrics import Metric, register, unit_of
+from pipeline.metrics import Metric, register
 from pipeline.data import Detections, Truth
 from pipeline.errors import ConfigError
 from pipeline.bounds import PerTruth
@@ -71,6 +71,10 @@ class SonarStudy(Study):
         self.bound_model = None if bound_tau is None or bound_sigma_m is None else (
             float(bound_tau), float(bound_sigma_m), float(bound_velocity_std))
         self._bounds = PerTruth()
+        # what variant_summary keeps of each variant for extra_summary: (R, 2) per-run RMSEs, (R, K)
+        # squared position errors
+        self._per_run: dict[str, np.ndarray] = {}
+        self._squared: dict[str, RunValues] = {}
 
     def check(self, scenario, sensor, estimators: dict) -> None:
         if not hasattr(sensor, "is_active"):
@@ -146,29 +150,38 @@ class SonarStudy(Study):
         from pipeline.studies.sonar.recording import write_sonar_recording
         write_sonar_recording(path, sensor=inputs.sensor, **inputs.common(), **inputs.options)
 
+    def variant_summary(self, truth: Truth, key: str, display: str, estimate, runs: int, sensor,
+                        metrics: dict) -> list[dict]:
+        """Table 1's readings of one variant (see the module docstring); keeps its per-run RMSEs and
+        squared position errors for ``extra_summary``'s ratios and post-switch peaks."""
+        rows: list[dict] = []
+        every_step = np.arange(truth.time.size)
+        err = estimate.state[..., :2] - truth.state[:, :, 0, :2]
+        self._squared[key] = RunValues(np.sum(err**2, axis=-1), "rms")
+        for axis, name in enumerate("xy"):
+            # pooled over the runs and the steps: the paper's Table 1 reading
+            rows.append(summary_row(key, display, f"rmse_{name}", "all", None, runs,
+                                    WindowStatistic(RunValues(err[..., axis] ** 2, "rms"), every_step, "pool")))
+        with quiet_nanmean():
+            self._per_run[key] = np.sqrt(np.nanmean(err**2, axis=1))            # (R, 2)
+        for axis, name in enumerate("xy"):
+            rows.append(summary_row(key, display, f"median_run_rmse_{name}", "all", None, runs,
+                                    WindowStatistic(RunValues(self._per_run[key][:, axis:axis + 1], "median"), [0],
+                                                    "mean")))
+        return rows
+
     def extra_summary(self, truth: Truth, estimates: dict, display: dict, runs: int, reference: str | None,
                       sensor, per_variant: dict) -> list[dict]:
-        """Table 1 readings and the post-switch peaks (see the module docstring)."""
+        """The paired ratios to the reference and the post-switch peaks, from what ``variant_summary``
+        kept of each variant (the estimates are not read again)."""
         rows: list[dict] = []
 
         def add(key, metric, window, statistic: WindowStatistic):
             rows.append(summary_row(key, display[key], metric, window, None, runs, statistic))
 
-        every_step = np.arange(truth.time.size)
-        per_run, squared = {}, {}
-        for key, est in estimates.items():
-            err = est.state[..., :2] - truth.state[:, :, 0, :2]
-            squared[key] = RunValues(np.sum(err**2, axis=-1), "rms")
-            for axis, name in enumerate("xy"):
-                # pooled over the runs and the steps: the paper's Table 1 reading
-                add(key, f"rmse_{name}", "all", WindowStatistic(RunValues(err[..., axis] ** 2, "rms"), every_step, "pool"))
-            with quiet_nanmean():
-                per_run[key] = np.sqrt(np.nanmean(err**2, axis=1))            # (R, 2)
-            for axis, name in enumerate("xy"):
-                add(key, f"median_run_rmse_{name}", "all",
-                    WindowStatistic(RunValues(per_run[key][:, axis:axis + 1], "median"), [0], "mean"))
+        per_run = {key: self._per_run[key] for key in per_variant}
         if reference in per_run:
-            for key in estimates:
+            for key in per_variant:
                 with np.errstate(invalid="ignore", divide="ignore"):
                     ratio = per_run[key] / per_run[reference]
                 for axis, name in enumerate("xy"):
@@ -180,5 +193,6 @@ class SonarStudy(Study):
         for key in per_variant:
             for k in switches:
                 inside = np.nonzero((time >= time[k]) & (time < time[k] + self.bump_window))[0]
-                add(key, "peak_position_rmse", f"after {time[k]:g} s", WindowStatistic(squared[key], inside, "max"))
+                add(key, "peak_position_rmse", f"after {time[k]:g} s",
+                    WindowStatistic(self._squared[key], inside, "max"))
         return rows

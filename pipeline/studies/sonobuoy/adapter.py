@@ -25,7 +25,7 @@ import numpy as np
 from filters.particle import MODE_NAMES, NOISE_GAINS, STATE_NAMES, BuoyReports, MultipleModelParticleFilter
 from pipeline import schemas
 from pipeline.contract import RecordingInputs, Study
-from pipeline.metrics import BAND, Metric, nees, register, unit_of
+from pipeline.metrics import BAND, Metric, nees, register
 from pipeline.data import Detections, Truth
 from pipeline.errors import ConfigError
 from pipeline.seeding import run_generators
@@ -204,26 +204,25 @@ class SonobuoyStudy(Study):
         bounds = posterior_crlb(F, Q, np.diag(self.prior_std**2), information)
         return np.sqrt(bounds[:, 0, 0] + bounds[:, 1, 1])
 
-    def extra_summary(self, truth: Truth, estimates: dict, display: dict, runs: int, reference: str | None,
-                      sensor, per_variant: dict) -> list[dict]:
+    def variant_summary(self, truth: Truth, key: str, display: str, estimate, runs: int, sensor,
+                        metrics: dict) -> list[dict]:
         rows = []
 
-        def add(key, metric, window, statistic: WindowStatistic):
-            rows.append(summary_row(key, display[key], metric, window, None, runs, statistic))
+        def add(metric, window, statistic: WindowStatistic):
+            rows.append(summary_row(key, display, metric, window, None, runs, statistic))
 
         time = truth.time
-        for key, est in estimates.items():
-            final = np.linalg.norm(est.state[:, -1, 0:2] - truth.state[:, -1, 0, 0:2], axis=-1)
-            lost = (~(final <= self.loss_threshold)).astype(float)[:, None]          # a run without an estimate is lost
-            add(key, "track_loss_rate", f"final error > {self.loss_threshold:g} m", WindowStatistic(RunValues(lost, "mean"), [0]))
-            add(key, "final_position_rmse", "final", WindowStatistic(RunValues(final[:, None] ** 2, "rms"), [0]))
-            error = np.linalg.norm(est.state[..., 0:2] - truth.state[:, :, 0, 0:2], axis=-1)
-            for name, (t0, t1) in self.peak_windows.items():
-                inside = np.nonzero((time >= t0) & (time <= t1))[0]
-                if inside.size:
-                    add(key, "peak_median_error", name, WindowStatistic(RunValues(error, "median"), inside, "max"))
-                else:
-                    rows.append(summary_row(key, display[key], "peak_median_error", name, None, runs))
+        final = np.linalg.norm(estimate.state[:, -1, 0:2] - truth.state[:, -1, 0, 0:2], axis=-1)
+        lost = (~(final <= self.loss_threshold)).astype(float)[:, None]          # a run without an estimate is lost
+        add("track_loss_rate", f"final error > {self.loss_threshold:g} m", WindowStatistic(RunValues(lost, "mean"), [0]))
+        add("final_position_rmse", "final", WindowStatistic(RunValues(final[:, None] ** 2, "rms"), [0]))
+        error = np.linalg.norm(estimate.state[..., 0:2] - truth.state[:, :, 0, 0:2], axis=-1)
+        for name, (t0, t1) in self.peak_windows.items():
+            inside = np.nonzero((time >= t0) & (time <= t1))[0]
+            if inside.size:
+                add("peak_median_error", name, WindowStatistic(RunValues(error, "median"), inside, "max"))
+            else:
+                rows.append(summary_row(key, display, "peak_median_error", name, None, runs))
         return rows
 
     def record(self, path, inputs: RecordingInputs) -> None:
