@@ -2,9 +2,11 @@
 machine has (``mc.max_memory_gb``, default: what is available when the job starts).
 
 The estimate is built from one run of the scenario and the sensor (a few ms), the size of the
-filters' output and the bootstrap's size: a job holds the truth, the measurements and every
-variant's estimates of all runs (the metrics are taken across runs), and at the peak one variant's
-table beside its decoded estimate; the intervals resample the runs at every step, in arrays of
+filters' output and the bootstrap's size: it counts the truth, the measurements and every
+variant's estimates of all runs, and at the peak one variant's table beside its decoded estimate.
+A job now holds one variant's estimate at a time (pipeline.estimates), so this over-counts the
+estimates of the other variants: kept as a cautious bound (a refusal must never let through a job
+that will not fit), not re-fitted to the lower peaks; the intervals resample the runs at every step, in arrays of
 (resamples x steps) that do not grow with the runs. So::
 
     500 MB + 3 x resamples x steps x 8 B + runs x (2 (truth + measurements) + sum over variants
@@ -14,7 +16,7 @@ with an estimate of K steps x T objects x (n + n^2) float64 times 2 (the filters
 probabilities, NIS, ...). The 500 MB is the interpreter with what a job loads (numpy, polars,
 Hydra, scipy.stats, numba and a compiled kernel, rerun for the recording). Against the measured
 peaks of every experiment (whole process, its recording included, status.json's ``peak_rss_mb``:
-the job's own VmHWM), at 2 runs and at the paper's size: 1.10-1.98x at 2 runs (the particle-filter
+the job's own VmHWM), at 2 runs and at the paper's size, measured while every variant was held: 1.10-1.98x at 2 runs (the particle-filter
 jobs closest, 1.10-1.24), 1.34-3.44x at the paper's size (study 003 100 runs 5.2 GB estimated /
 1.55 GB measured: its compact tables hold float32 covariance triangles, a quarter of the float64
 squares counted here; study 002 2.7 / 0.78: 32 targets, small bias estimates). Never below, which
