@@ -244,52 +244,71 @@ def summary_rows(variants: Mapping[str, tuple[str, Mapping[str, RunValues | np.n
     aggregation, pipeline.metrics), the count metrics also over each of ``count_windows``, compute
     time (and as % of ``compute_reference``, by default the reference variant; none when it is None:
     a study whose variants have no sensible common yardstick prints seconds only), models per step
-    (and as % of the reference variant), and optionally the fraction of runs reaching a group. Units
-    come from the metric registry; a percentage's unit names its reference ("% of FSIMM"), which the
-    printed table's header shows. Rows of metrics kept per run carry their ``statistic``
-    (``summary_table`` turns them into intervals)."""
+    (and as % of the reference variant), and optionally the fraction of runs reaching a group
+    (``reached`` names it, ``reached_fractions`` holds each variant's ``group_reached``).
+    ``compute_seconds``: each variant's filtering time. Units come from the metric registry; a
+    percentage's unit names its reference ("% of FSIMM"), which the printed table's header shows.
+    Rows of metrics kept per run carry their ``statistic`` (``summary_table`` turns them into
+    intervals). The rows of ``variant_rows`` for each variant, then those of ``reference_rows``."""
+    rows: list[dict] = []
+    for key, (display, metrics) in variants.items():
+        rows += variant_rows(key, display, metrics, compute_seconds[key], windows, runs, reached, count_windows,
+                             (reached_fractions or {}).get(key))
+    models = {key: models_per_step(metrics, windows) for key, (_, metrics) in variants.items()}
+    return rows + reference_rows({key: display for key, (display, _) in variants.items()}, compute_seconds, models,
+                                 windows, reference_key, runs, compute_reference)
+
+
+def _row(key: str, display: str, metric: str, window: str | None, values, runs: int, w: Window | None = None) -> dict:
+    if isinstance(values, RunValues):
+        return summary_row(key, display, metric, window, None, runs, window_statistic(metric, values, w))
+    value = window_value(metric, values, w) if w is not None else values
+    return summary_row(key, display, metric, window, value, runs)
+
+
+def variant_rows(key: str, display: str, metrics: Mapping[str, RunValues | np.ndarray], compute_seconds: float,
+                 windows: Sequence[Window], runs: int, reached: tuple[str, int, int] | None = None,
+                 count_windows: Sequence[Window] = (), reached_fraction: np.ndarray | None = None) -> list[dict]:
+    """One variant's rows of ``summary_rows``: its metrics over the windows (counts also over the
+    count windows), its compute time, the fraction of its runs reaching ``reached``'s group."""
+    rows = [_row(key, display, metric, w.name, values, runs, w) for w in windows for metric, values in metrics.items()]
+    rows += [_row(key, display, metric, w.name, values, runs, w) for w in count_windows
+             for metric, values in metrics.items() if is_count(metric)]
+    rows.append(_row(key, display, "compute_seconds", None, compute_seconds, runs))
+    if reached is not None and reached_fraction is not None:
+        name, _, by_step = reached
+        rows.append(_row(key, display, "group_reached_fraction", f"{name} by step {by_step}",
+                         RunValues(reached_fraction[:, None], "mean"), runs, Window("", 0, 0)))
+    return rows
+
+
+def models_per_step(metrics: Mapping[str, RunValues | np.ndarray], windows: Sequence[Window]) -> dict[str, float | None]:
+    """window name -> a variant's mean models evaluated per step (None without that metric)."""
+    return {w.name: _models_per_step(metrics, w) for w in windows}
+
+
+def reference_rows(display: Mapping[str, str], compute_seconds: Mapping[str, float],
+                   models: Mapping[str, Mapping[str, float | None]], windows: Sequence[Window],
+                   reference_key: str | None, runs: int, compute_reference: str | None = SAME_AS_REFERENCE
+                   ) -> list[dict]:
+    """The rows of ``summary_rows`` across variants: compute time as % of ``compute_reference``'s, and
+    models per step (``models``: each variant's ``models_per_step``) as % of the reference variant's."""
     if compute_reference == SAME_AS_REFERENCE:
         compute_reference = reference_key
     rows: list[dict] = []
-
-    def add(key, display, metric, window, values, w: Window | None = None):
-        if isinstance(values, RunValues):
-            rows.append(summary_row(key, display, metric, window, None, runs, window_statistic(metric, values, w)))
-        else:
-            value = window_value(metric, values, w) if w is not None else values
-            rows.append(summary_row(key, display, metric, window, value, runs))
-
-    for key, (display, metrics) in variants.items():
-        for w in windows:
-            for metric, values in metrics.items():
-                add(key, display, metric, w.name, values, w)
-        for w in count_windows:
-            for metric, values in metrics.items():
-                if is_count(metric):
-                    add(key, display, metric, w.name, values, w)
-        add(key, display, "compute_seconds", None, compute_seconds[key])
-        if reached is not None:
-            name, group, by_step = reached
-            fraction = (reached_fractions or {}).get(key)
-            if fraction is not None:
-                add(key, display, "group_reached_fraction", f"{name} by step {by_step}",
-                    RunValues(fraction[:, None], "mean"), Window("", 0, 0))
-    if compute_reference is not None and compute_reference in variants:
+    if compute_reference is not None and compute_reference in display:
         ref_time = compute_seconds[compute_reference]
-        of = f"% of {variants[compute_reference][0]}"
-        for key, (display, metrics) in variants.items():
-            add(key, display, "compute_pct_of_reference", None, 100.0 * compute_seconds[key] / ref_time)
-            rows[-1]["unit"] = of
-    if reference_key is not None and reference_key in variants:
-        ref_models = {w.name: _models_per_step(variants[reference_key][1], w) for w in windows}
-        of = f"% of {variants[reference_key][0]}"
-        for key, (display, metrics) in variants.items():
+        for key, name in display.items():
+            rows.append(_row(key, name, "compute_pct_of_reference", None, 100.0 * compute_seconds[key] / ref_time, runs)
+                        | {"unit": f"% of {display[compute_reference]}"})
+    if reference_key is not None and reference_key in display:
+        ref_models = models[reference_key]
+        for key, name in display.items():
             for w in windows:
-                mine = _models_per_step(metrics, w)
-                ref = ref_models[w.name]
+                mine, ref = models[key][w.name], ref_models[w.name]
                 if mine is not None and ref is not None and np.isfinite(mine) and np.isfinite(ref) and ref:
-                    add(key, display, "models_pct_of_reference", w.name, 100.0 * mine / ref)
-                    rows[-1]["unit"] = of
+                    rows.append(_row(key, name, "models_pct_of_reference", w.name, 100.0 * mine / ref, runs)
+                                | {"unit": f"% of {display[reference_key]}"})
     return rows
 
 

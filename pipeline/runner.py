@@ -30,9 +30,10 @@ from pipeline.contract import RecordingInputs, Study
 from pipeline.config import build, check_objective, compute_reference, flatten, selected_variants, validate
 from pipeline.errors import ConfigError
 from pipeline.estimates import StoredEstimates, recorded_runs
-from pipeline.evaluate import Window, group_reached, metrics_frame, summary_row, summary_rows, summary_table
+from pipeline.evaluate import (Window, group_reached, metrics_frame, models_per_step, reference_rows, summary_row,
+                               summary_table, variant_rows)
 from pipeline.evaluate import resolved as per_step_values
-from pipeline.uncertainty import CONFIDENCE, RESAMPLES
+from pipeline.uncertainty import CONFIDENCE, RESAMPLES, resample
 from pipeline.faults import FaultChecks, fault_summary
 from pipeline.memory import check as check_memory
 from pipeline.memory import own_peak_rss_mb
@@ -402,7 +403,8 @@ def run_experiment(cfg: DictConfig, ctx: RunContext) -> RunOutcome:
             faults[v] = _track_done(v, display[v], estimate, table, cached[stage.output], runs, truth.time.size)
             if evaluation is None:
                 evaluation = Evaluation(cfg, study, sensor, truth, runs)
-            evaluation.add(v, display[v], estimate)
+            with progress.task(f"[evaluate] {display[v]}"):      # the bootstrap reports its metrics
+                evaluation.add(v, display[v], estimate)
             if record_runs:
                 recorded[v] = recorded_runs(estimate, record_runs, runs)
             tables[v] = inside(ctx.run_dir, stage.publish_as)
@@ -501,21 +503,33 @@ class Evaluated:
 
 class Evaluation:
     """The evaluate stage, fed one variant at a time (``add``, as soon as its estimate exists, which
-    can then be let go: pipeline.estimates) and finished once every variant is in (``finish``). It
-    keeps each variant's per-step metrics (per run where a summary interval needs them), compute
-    time and group-reached flags, not its estimate. A bound that cannot be inverted
-    (``filters.bounds.SingularBoundWarning``) is logged once, at the end."""
+    can then be let go: pipeline.estimates) and finished once every variant is in (``finish``).
+    ``add`` measures the variant (``Study.per_step_metrics``, its summary rows and the study's
+    ``variant_summary`` rows) and resamples its rows' statistics on the job's bootstrap resamples
+    (``pipeline.uncertainty.resample``: the same resampled runs for every variant, so the comparisons
+    stay paired), then lets its per-run, per-step values go: what is kept of a variant is its per-step
+    values over the runs, its rows' resamples and per-run values, its compute time. A bound that
+    cannot be inverted (``filters.bounds.SingularBoundWarning``) is logged once, at the end."""
 
     def __init__(self, cfg: DictConfig, study: Study, sensor: Any, truth: Any, runs: int) -> None:
         self.cfg, self.study, self.sensor, self.truth, self.runs = cfg, study, sensor, truth, runs
-        self.metrics: dict[str, tuple[str, dict[str, Any]]] = {}
-        self.compute_seconds: dict[str, float] = {}
-        self.reached_fractions: dict[str, Any] = {}
-        self.variant_rows: list[dict] = []               # the study's variant_summary rows, in variant order
+        K = truth.time.size
+        self.windows, self.count_windows = _windows(cfg, "windows", K), _windows(cfg, "count_windows", K)
+        uncertainty = cfg.get("uncertainty") or {}
+        self.seed = int(cfg.mc.seed)
+        self.confidence = float(uncertainty.get("confidence", CONFIDENCE))
+        self.resamples = int(uncertainty.get("bootstrap_resamples", RESAMPLES))
         self.reached = None
         gr = cfg.metrics.get("group_reached")            # checked by validate()
         if gr:
             self.reached = (str(gr.group), list(cfg.models.groups.keys()).index(gr.group), int(gr.by_step))
+        # per variant, in the order added
+        self.display: dict[str, str] = {}
+        self.per_step: dict[str, tuple[str, dict[str, Any]]] = {}    # (K,) values over the runs, per metric
+        self.rows: dict[str, list[dict]] = {}            # its summary rows (pipeline.evaluate.variant_rows)
+        self.study_rows: dict[str, list[dict]] = {}      # its Study.variant_summary rows
+        self.models: dict[str, dict[str, float | None]] = {}
+        self.compute_seconds: dict[str, float] = {}
         self._warnings: list[warnings.WarningMessage] = []
         self.measuring_seconds = 0.0                     # spent in ``add``, between the track stages
 
@@ -535,40 +549,42 @@ class Evaluation:
         started = time.perf_counter()
         with self._catching():
             metrics = self.study.per_step_metrics(self.truth, estimate, self.sensor)
-            self.metrics[key] = (display, metrics)
-            self.variant_rows += self.study.variant_summary(self.truth, key, display, estimate, self.runs,
-                                                            self.sensor, metrics)
+            fraction = group_reached(estimate, self.reached[1], self.reached[2]) if self.reached else None
+            own = variant_rows(key, display, metrics, float(estimate.compute_seconds), self.windows, self.runs,
+                               self.reached, self.count_windows, fraction)
+            studied = [row if "statistic" in row else row | {"statistic": None} for row in
+                       self.study.variant_summary(self.truth, key, display, estimate, self.runs, self.sensor, metrics)]
+            estimated = [row for row in own + studied if row.get("statistic") is not None]
+            for row, reduced in zip(estimated, resample([row["statistic"] for row in estimated], self.seed,
+                                                        self.resamples)):
+                row["statistic"] = reduced               # its per-run, per-step values can go now
+            self.display[key] = display
+            self.rows[key], self.study_rows[key] = own, studied
+            self.per_step[key] = (display, per_step_values(metrics))
+            self.models[key] = models_per_step(metrics, self.windows)
             self.compute_seconds[key] = float(estimate.compute_seconds)
-            if self.reached is not None:
-                self.reached_fractions[key] = group_reached(estimate, self.reached[1], self.reached[2])
         self.measuring_seconds += time.perf_counter() - started
 
     def finish(self, estimates: Mapping[str, Any], faults: dict[str, dict[str, int]]) -> Evaluated:
         """The tables, once every variant is in; ``estimates`` (variant key -> estimate, e.g. a
-        ``pipeline.estimates.StoredEstimates``) serves the study's own summary rows."""
-        cfg, runs = self.cfg, self.runs
-        variants = list(self.metrics)
-        display = {v: name for v, (name, _) in self.metrics.items()}
-        K = self.truth.time.size
+        ``pipeline.estimates.StoredEstimates``) serves the study's rows across variants."""
+        cfg, runs, display = self.cfg, self.runs, self.display
+        variants = list(display)
         with self._catching():
             ref = cfg.metrics.get("reference_variant")
             ref = ref if ref in variants else None
-            rows = summary_rows(self.metrics, self.compute_seconds, _windows(cfg, "windows", K), ref, runs,
-                                self.reached, _windows(cfg, "count_windows", K),
-                                compute_reference(cfg),       # compute time as % of it (pipeline.config)
-                                self.reached_fractions)
-            # a study's own rows read the per-step values (a RunValues resolved to its value over the runs)
-            per_step = {v: (name, per_step_values(metrics)) for v, (name, metrics) in self.metrics.items()}
-            study_rows = self.variant_rows + self.study.extra_summary(self.truth, estimates, display, runs, ref,
-                                                                      self.sensor, per_step)
-            rows += [row if "statistic" in row else row | {"statistic": None} for row in study_rows]
+            rows = [row for v in variants for row in self.rows[v]]
+            rows += reference_rows(display, self.compute_seconds, self.models, self.windows, ref, runs,
+                                   compute_reference(cfg))      # compute time as % of it (pipeline.config)
+            # the study's rows across variants read the per-step values (over the runs)
+            rows += [row for v in variants for row in self.study_rows[v]]
+            rows += [row if "statistic" in row else row | {"statistic": None} for row in
+                     self.study.extra_summary(self.truth, estimates, display, runs, ref, self.sensor, self.per_step)]
             rows += [summary_row(v, display[v], name, None, float(count), runs) for v in variants
                      for name, count in faults[v].items()]
-            uncertainty = cfg.get("uncertainty") or {}
-            summary, comparisons, per_run, resamples = summary_table(
-                rows, ref, int(cfg.mc.seed), float(uncertainty.get("confidence", CONFIDENCE)),
-                int(uncertainty.get("bootstrap_resamples", RESAMPLES)))
-            metrics = metrics_frame(self.truth.time, self.metrics, runs)
+            summary, comparisons, per_run, resamples = summary_table(rows, ref, self.seed, self.confidence,
+                                                                     self.resamples)
+            metrics = metrics_frame(self.truth.time, self.per_step, runs)
         # a bound that cannot be inverted is NaN from that scan (filters.bounds): said once, in the log
         for message in dict.fromkeys(str(w.message) for w in self._warnings):
             log.warning("[evaluate] %s: position_bound and its ratios are NaN there; the metrics go on", message)

@@ -465,8 +465,18 @@ def bootstrap_values(groups: Sequence[tuple[RunValues, Sequence[WindowStatistic]
     a window mean of per-step RMS errors over many independent steps), the interval is the value +-
     z x the bootstrap standard error ("bootstrap normal"); where every resample agrees, the point
     ("constant"); NaN where more than 1 % of the resamples have no value ("none")."""
-    from scipy.special import ndtr, ndtri
+    values = _resampled(groups, runs, seed, resamples)
+    with warnings.catch_warnings(), np.errstate(invalid="ignore", divide="ignore"):
+        warnings.simplefilter("ignore", RuntimeWarning)
+        distribution, jackknife, point = (np.asarray(combine(v), dtype=float).reshape(outputs, -1) for v in values)
+    low, high, se, method = _bca(distribution, jackknife, point[:, 0], confidence)
+    return low, high, se, method, distribution
 
+
+def _resampled(groups: Sequence[tuple[RunValues, Sequence[WindowStatistic]]], runs: int, seed: Sequence[int],
+               resamples: int) -> tuple[list[np.ndarray], list[np.ndarray], list[np.ndarray]]:
+    """Each statistic's values (in the order of ``groups``) on the bootstrap resamples (B,), with each
+    run left out (the jackknife, (runs,)), and on all runs once ((1,): the BCa's reference point)."""
     rng = np.random.default_rng(list(seed))
     drawn = rng.integers(0, runs, size=(resamples, runs))
     counts = np.zeros((resamples, runs))
@@ -510,11 +520,18 @@ def bootstrap_values(groups: Sequence[tuple[RunValues, Sequence[WindowStatistic]
     with warnings.catch_warnings(), np.errstate(invalid="ignore", divide="ignore"):
         warnings.simplefilter("ignore", RuntimeWarning)
         # the resamples are the work (the jackknife's and the point's rows are few): their progress
-        distribution = np.asarray(combine(evaluate(counts, current_progress())),
-                                  dtype=float).reshape(outputs, resamples)
-        jackknife = np.asarray(combine(evaluate(jack_counts)), dtype=float).reshape(outputs, runs)
-        point = np.asarray(combine(evaluate(np.ones((1, runs)))), dtype=float).reshape(outputs)
+        return evaluate(counts, current_progress()), evaluate(jack_counts), evaluate(np.ones((1, runs)))
 
+
+def _bca(distribution: np.ndarray, jackknife: np.ndarray, point: np.ndarray, confidence: float):
+    """(low, high, standard error, method) of each output row from its bootstrap ``distribution``
+    (outputs, B), ``jackknife`` (outputs, runs) and value on all runs ``point`` (outputs,); see
+    ``bootstrap_values``."""
+    from scipy.special import ndtr, ndtri
+
+    outputs = distribution.shape[0]
+    with warnings.catch_warnings(), np.errstate(invalid="ignore", divide="ignore"):
+        warnings.simplefilter("ignore", RuntimeWarning)
         finite = np.isfinite(distribution).mean(axis=1) >= 0.99
         se = np.nanstd(distribution, axis=1, ddof=1)
         alpha = (1 - confidence) / 2
@@ -540,7 +557,7 @@ def bootstrap_values(groups: Sequence[tuple[RunValues, Sequence[WindowStatistic]
     method[constant] = "constant"
     low[~finite], high[~finite], se[~finite] = np.nan, np.nan, np.nan
     method[~finite] = "none"
-    return low, high, se, method, distribution
+    return low, high, se, method
 
 
 def stream_seed(seed: int, *names: str) -> list[int]:
@@ -555,33 +572,91 @@ class Estimated:
     variant: str
     series: str
     window: str | None
-    statistic: WindowStatistic
+    statistic: "WindowStatistic | Resampled"
+
+
+@dataclass(frozen=True)
+class Resampled:
+    """A ``WindowStatistic`` reduced to what its interval, its paired comparisons, the per-run table and
+    the resamples table read (``resample``), so that the per-run, per-step values it came from can be
+    let go (the evaluation resamples each variant's statistics when the variant is measured:
+    pipeline.runner.Evaluation). ``summarize`` and ``summary_table`` take it where they take the
+    statistic, with the same results bit for bit."""
+    point: float                                   # the statistic's value
+    valid: np.ndarray                              # (R,) runs with a value in the window
+    plain: tuple[np.ndarray, float] | None         # its plain_mean()
+    runs_values: np.ndarray                        # (R,) each run's own value (per_run())
+    distribution: np.ndarray                       # (B,) its value on each bootstrap resample
+    jackknife: np.ndarray                          # (R,) ... with each run left out
+    all_runs: float                                # ... on all runs once: the BCa's reference point
+
+    @property
+    def runs(self) -> int:
+        return int(self.valid.size)
+
+    def value(self) -> float:
+        return self.point
+
+    def valid_runs(self) -> np.ndarray:
+        return self.valid
+
+    def plain_mean(self) -> tuple[np.ndarray, float] | None:
+        return self.plain
+
+    def per_run(self) -> np.ndarray:
+        return self.runs_values
+
+
+def _runs_of(statistic: "WindowStatistic | Resampled") -> int:
+    return statistic.runs if isinstance(statistic, Resampled) else statistic.values.runs
+
+
+def resample(statistics: Sequence[WindowStatistic], seed: int, resamples: int = RESAMPLES) -> list[Resampled]:
+    """Each statistic reduced to a ``Resampled`` on the job's bootstrap resamples (those of ``seed``,
+    the same for every statistic of the job whenever it is resampled: a comparison stays paired).
+    Statistics reading one ``RunValues`` share its resampled per-step values (give them together)."""
+    if not statistics:
+        return []
+    runs = statistics[0].values.runs
+    if any(s.values.runs != runs for s in statistics):
+        raise ValueError("summarize: every statistic of a job must hold the same Monte Carlo runs")
+    # group the statistics by their RunValues so each resample computes a metric's per-step values once
+    order: dict[int, tuple[RunValues, list[int]]] = {}
+    for i, statistic in enumerate(statistics):
+        order.setdefault(id(statistic.values), (statistic.values, []))[1].append(i)
+    first_of_array: dict[int, int] = {}
+    for n, (rv, _) in enumerate(order.values()):
+        first_of_array.setdefault(id(rv.values), n)
+    order = dict(sorted(order.items(), key=lambda item: first_of_array[id(item[1][0].values)]))
+    flat_order = [i for _, members in order.values() for i in members]
+    groups = [(rv, [statistics[i] for i in members]) for rv, members in order.values()]
+    distribution, jackknife, point = _resampled(groups, runs, stream_seed(seed, "summary"), resamples)
+    at = {i: p for p, i in enumerate(flat_order)}
+    return [Resampled(s.value(), s.valid_runs(), s.plain_mean(), s.per_run(), distribution[at[i]],
+                      jackknife[at[i]], float(point[at[i]][0])) for i, s in enumerate(statistics)]
 
 
 def summarize(rows: Sequence[Estimated], reference: str | None, seed: int, confidence: float = CONFIDENCE,
               resamples: int = RESAMPLES, kept: dict | None = None) -> tuple[dict[int, Interval], list[dict]]:
     """Intervals of every row (by its index in ``rows``) and the paired comparisons of each variant with
     ``reference`` on every (series, window) both have (rows as dicts, see ``comparisons_schema``).
+    A row's statistic is a ``WindowStatistic`` (resampled here, with the others) or one already
+    ``resample``d on the same ``seed`` and ``resamples``.
     ``kept``: a dict that gets ``"values"``, the first ``KEPT_RESAMPLES`` joint resamples of every row
     (rows x resamples: the same resampled runs for every row), which the report judges targets on."""
     from scipy import stats
 
     if not rows:
         return {}, []
-    runs = rows[0].statistic.values.runs
-    if any(r.statistic.values.runs != runs for r in rows):
+    runs = _runs_of(rows[0].statistic)
+    if any(_runs_of(r.statistic) != runs for r in rows):
         raise ValueError("summarize: every statistic of a job must hold the same Monte Carlo runs")
-    # group the statistics by their RunValues so each resample computes a metric's per-step values once
-    order: dict[int, tuple[RunValues, list[int]]] = {}
-    for i, row in enumerate(rows):
-        order.setdefault(id(row.statistic.values), (row.statistic.values, []))[1].append(i)
-    first_of_array: dict[int, int] = {}
-    for n, (rv, _) in enumerate(order.values()):
-        first_of_array.setdefault(id(rv.values), n)
-    order = dict(sorted(order.items(), key=lambda item: first_of_array[id(item[1][0].values)]))
-    flat_order = [i for _, members in order.values() for i in members]
-    position = {i: p for p, i in enumerate(flat_order)}
-    groups = [(rv, [rows[i].statistic for i in members]) for rv, members in order.values()]
+    fresh = [i for i, r in enumerate(rows) if not isinstance(r.statistic, Resampled)]
+    reduced = dict(zip(fresh, resample([rows[i].statistic for i in fresh], seed, resamples)))
+    statistics = [reduced.get(i, r.statistic) for i, r in enumerate(rows)]
+    if any(s.distribution.size != resamples for s in statistics):
+        raise ValueError(f"summarize: a statistic was resampled {resamples} times elsewhere; every one must be "
+                         f"resampled the same way")
 
     by_key = {(r.variant, r.series, r.window): i for i, r in enumerate(rows)}
     pairs = []
@@ -591,25 +666,27 @@ def summarize(rows: Sequence[Estimated], reference: str | None, seed: int, confi
             if r.variant != reference and j is not None:
                 pairs.append((i, j))
 
-    def combine(values: list[np.ndarray]) -> np.ndarray:
-        own = [values[position[i]] for i in range(len(rows))]
+    def combine(own: list[np.ndarray]) -> np.ndarray:
         out = list(own)
         with np.errstate(invalid="ignore", divide="ignore"):
             out += [own[i] - own[j] for i, j in pairs]
             out += [own[i] / own[j] for i, j in pairs]
         return np.stack(out)
 
-    outputs = len(rows) + 2 * len(pairs)
-    low, high, se, method, distribution = bootstrap_values(groups, runs, combine, outputs,
-                                                           stream_seed(seed, "summary"), confidence, resamples)
+    with warnings.catch_warnings(), np.errstate(invalid="ignore", divide="ignore"):
+        warnings.simplefilter("ignore", RuntimeWarning)
+        distribution = combine([s.distribution for s in statistics])
+        jackknife = combine([s.jackknife for s in statistics])
+        point = combine([np.array([s.all_runs]) for s in statistics])[:, 0]
+    low, high, se, method = _bca(distribution, jackknife, point, confidence)
     if kept is not None:
         kept["values"] = distribution[:len(rows), :KEPT_RESAMPLES]
     intervals: dict[int, Interval] = {}
-    points = [r.statistic.value() for r in rows]
-    for i, r in enumerate(rows):
-        valid = r.statistic.valid_runs()
+    points = [s.value() for s in statistics]
+    for i, statistic in enumerate(statistics):
+        valid = statistic.valid_runs()
         n = int(valid.sum())
-        plain = r.statistic.plain_mean()
+        plain = statistic.plain_mean()
         if plain is not None and np.isfinite(points[i]):
             intervals[i] = plain_interval(plain[0], plain[1], confidence, points[i])
         elif not np.isfinite(points[i]) or n < 2:
@@ -620,7 +697,7 @@ def summarize(rows: Sequence[Estimated], reference: str | None, seed: int, confi
     for p, (i, j) in enumerate(pairs):
         a, b = rows[i], rows[j]
         d, q = len(rows) + p, len(rows) + len(pairs) + p
-        mine, theirs = a.statistic.per_run(), b.statistic.per_run()
+        mine, theirs = statistics[i].per_run(), statistics[j].per_run()
         both = np.isfinite(mine) & np.isfinite(theirs)
         differences = (mine - theirs)[both]
         if differences.size and np.all(differences == 0):
