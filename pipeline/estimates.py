@@ -99,6 +99,11 @@ class RecordedRuns:
                              f"them ({self.runs}); the other runs are not held")
         return self.rows[(index, *rest)]
 
+    def __iter__(self):
+        # without it, Python would iterate through __getitem__ and stop silently at the first run not held
+        raise TypeError(f"RecordedRuns: only the recorded runs {self.runs} of this {self.shape} array are held; "
+                        f"index it by run (array[r]) instead of iterating over every run")
+
     def __array__(self, dtype=None, copy=None) -> np.ndarray:
         raise TypeError(f"RecordedRuns: only the recorded runs {self.runs} of this {self.shape} array are held; "
                         f"index it by run (array[r]) instead of reading it whole")

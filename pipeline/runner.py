@@ -531,6 +531,7 @@ class Evaluation:
         self.models: dict[str, dict[str, float | None]] = {}
         self.compute_seconds: dict[str, float] = {}
         self._warnings: list[warnings.WarningMessage] = []
+        self._reissued: set[tuple] = set()
         self.measuring_seconds = 0.0                     # spent in ``add``, between the track stages
 
     @contextlib.contextmanager
@@ -541,7 +542,9 @@ class Evaluation:
             yield
         self._warnings += [w for w in caught if issubclass(w.category, SingularBoundWarning)]
         for w in caught:
-            if not issubclass(w.category, SingularBoundWarning):
+            key = (str(w.message), w.category, w.filename, w.lineno)
+            if not issubclass(w.category, SingularBoundWarning) and key not in self._reissued:
+                self._reissued.add(key)           # once per job, not once per variant
                 warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
 
     def add(self, key: str, display: str, estimate: Any) -> None:
@@ -602,9 +605,14 @@ def evaluate_stage(cfg: DictConfig, study: Study, sensor: Any, truth: Any, estim
     recomputes a stored run's from its files alone (a run measures each variant as its track stage
     ends: ``Evaluation``)."""
     evaluation = Evaluation(cfg, study, sensor, truth, runs)
-    for v, estimate in estimates.items():
-        evaluation.add(v, display[v], estimate)
-    return evaluation.finish(estimates, faults)
+    for v in list(estimates):        # no loop variable keeps the previous estimate while the next is read
+        evaluation.add(v, display[v], estimates[v])
+    if isinstance(estimates, StoredEstimates):
+        estimates.release()
+    evaluated = evaluation.finish(estimates, faults)
+    if isinstance(estimates, StoredEstimates):
+        estimates.release()
+    return evaluated
 
 
 def _progress_label(stage: Any, inputs: dict[str, Any], prepared: Prepared) -> str:

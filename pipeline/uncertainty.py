@@ -588,7 +588,9 @@ class Resampled:
     runs_values: np.ndarray                        # (R,) each run's own value (per_run())
     distribution: np.ndarray                       # (B,) its value on each bootstrap resample
     jackknife: np.ndarray                          # (R,) ... with each run left out
-    all_runs: float                                # ... on all runs once: the BCa's reference point
+    all_runs: np.ndarray                           # (1,) ... on all runs once: the BCa's reference point
+    # (the arrays keep the resampling's dtype: float32 for large counts, ResampledTotals; pairs are
+    # formed in it and cast to float64 after, as in bootstrap_values)
 
     @property
     def runs(self) -> int:
@@ -633,7 +635,7 @@ def resample(statistics: Sequence[WindowStatistic], seed: int, resamples: int = 
     distribution, jackknife, point = _resampled(groups, runs, stream_seed(seed, "summary"), resamples)
     at = {i: p for p, i in enumerate(flat_order)}
     return [Resampled(s.value(), s.valid_runs(), s.plain_mean(), s.per_run(), distribution[at[i]],
-                      jackknife[at[i]], float(point[at[i]][0])) for i, s in enumerate(statistics)]
+                      jackknife[at[i]], point[at[i]]) for i, s in enumerate(statistics)]
 
 
 def summarize(rows: Sequence[Estimated], reference: str | None, seed: int, confidence: float = CONFIDENCE,
@@ -675,9 +677,9 @@ def summarize(rows: Sequence[Estimated], reference: str | None, seed: int, confi
 
     with warnings.catch_warnings(), np.errstate(invalid="ignore", divide="ignore"):
         warnings.simplefilter("ignore", RuntimeWarning)
-        distribution = combine([s.distribution for s in statistics])
-        jackknife = combine([s.jackknife for s in statistics])
-        point = combine([np.array([s.all_runs]) for s in statistics])[:, 0]
+        distribution = np.asarray(combine([s.distribution for s in statistics]), dtype=float)
+        jackknife = np.asarray(combine([s.jackknife for s in statistics]), dtype=float)
+        point = np.asarray(combine([s.all_runs for s in statistics]), dtype=float)[:, 0]
     low, high, se, method = _bca(distribution, jackknife, point, confidence)
     if kept is not None:
         kept["values"] = distribution[:len(rows), :KEPT_RESAMPLES]

@@ -48,6 +48,8 @@ def test_recorded_runs_give_the_recorded_rows_and_refuse_every_other_run():
         kept.state[:, 0]
     with pytest.raises(TypeError, match="only the recorded runs"):
         np.asarray(kept.state)
+    with pytest.raises(TypeError, match="instead of iterating"):   # not a silent stop at run 0
+        list(kept.state)
 
 
 def test_a_packed_covariance_keeps_its_recorded_runs_unpacked():
@@ -191,3 +193,27 @@ def test_the_evaluation_lets_a_measured_variants_per_run_values_go(tmp_path, mon
     outcome = run_experiment(cfg, RunContext(tmp_path / "runs" / "one", tmp_path, []))
     assert alive_after_add == [0] * len(cfg.filters)
     assert outcome.summary["ci_low"].is_not_null().sum() > 0
+
+
+def test_recomputing_a_run_reads_one_variants_estimate_at_a_time(tmp_path, monkeypatch):
+    """pipeline.recompute evaluates the stored tables through StoredEstimates; its loop kept the
+    previous estimate while the next one was read (two in memory)."""
+    from pipeline.recompute import recompute
+    from tests.test_pipeline import run_in_process
+
+    _, ctx = run_in_process(tmp_path, "run", "experiment=mie_los", "mc.runs=2")
+    returned: list[weakref.ref] = []
+    alive_at_read: list[int] = []
+    original_init = StoredEstimates.__init__
+
+    def init(self, tables, from_frame):
+        def counted(df, meta):                 # called once the previous estimate was let go
+            alive_at_read.append(sum(ref() is not None for ref in returned))
+            value = from_frame(df, meta)
+            returned.append(weakref.ref(value))
+            return value
+        original_init(self, tables, counted)
+
+    monkeypatch.setattr(StoredEstimates, "__init__", init)
+    recompute(ctx.run_dir)
+    assert len(alive_at_read) >= 5 and set(alive_at_read) == {0}, alive_at_read

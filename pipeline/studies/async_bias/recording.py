@@ -282,7 +282,7 @@ def write_bias_recording(path: Path, *, experiment: str, truth: Truth, detection
                                              show_labels=True, draw_order=50.0), static=True)
         for r in record_runs:
             _log_run(rr, rec, times, ui, r, truth, truth_xy, detections, det_steps, estimates, est_steps,
-                     positions, names, colours, display, true_bias, flip)
+                     positions, names, colours, display, true_bias, flip, bias_keys)
         log_metric_series(rr, rec, times, metric_series)
         log_keys(rr, rec, variant_keys, display, colours, extra=key_extra(names))
         for metric, (steps, t, mean, lo, hi) in bands.items():
@@ -299,7 +299,7 @@ def write_bias_recording(path: Path, *, experiment: str, truth: Truth, detection
 def _log_run(rr, rec, times, ui, r: int, truth: Truth, truth_xy: list[int], detections: Detections,
              det_steps: np.ndarray, estimates: Mapping[str, BiasRegistrationResult], est_steps: dict,
              positions: np.ndarray, names: list[str], colours: dict, display: dict, true_bias: np.ndarray,
-             flip: np.ndarray) -> None:
+             flip: np.ndarray, bias_keys: list[str]) -> None:
     world = f"/world/run{r}"
     grid = np.asarray(truth.time, dtype=np.float64)
     S = positions.shape[0]
@@ -353,7 +353,7 @@ def _log_run(rr, rec, times, ui, r: int, truth: Truth, truth_xy: list[int], dete
     # ---- per variant and radar: biased / compensated tracks of the kept targets ---------------
     for key, est in estimates.items():
         steps_of = est_steps[key]
-        has_bias = _has_bias(est, [r])
+        has_bias = key in bias_keys
         for n in range(S):
             rows = np.nonzero(np.asarray(est.sensor) == n)[0]
             if not rows.size:
@@ -442,7 +442,7 @@ def _bias_blueprint(rrb, truth: Truth, truth_xy: list[int], positions: np.ndarra
 
         def tracks(keys):               # the track entities of these variants (time-ranged: up to now)
             return [f"{world}/{k}/radar{n + 1}/{kind}/track" for k in keys for n in range(S)
-                    for kind in (KINDS if _has_bias(estimates[k], [r0]) else KINDS[:1])]
+                    for kind in (KINDS if k in bias_keys else KINDS[:1])]
 
         xy = np.concatenate([np.asarray(truth.state[r0], dtype=np.float64)[..., truth_xy].reshape(-1, 2), positions])
         xy = xy[np.isfinite(xy).all(-1)]

@@ -179,7 +179,9 @@ class SonarStudy(Study):
         def add(key, metric, window, statistic: WindowStatistic):
             rows.append(summary_row(key, display[key], metric, window, None, runs, statistic))
 
-        per_run = {key: self._per_run[key] for key in per_variant}
+        # what variant_summary kept, let go with these rows (the recording follows)
+        per_run, squared = self._per_run, self._squared
+        self._per_run, self._squared = {}, {}
         if reference in per_run:
             for key in per_variant:
                 with np.errstate(invalid="ignore", divide="ignore"):
@@ -193,6 +195,5 @@ class SonarStudy(Study):
         for key in per_variant:
             for k in switches:
                 inside = np.nonzero((time >= time[k]) & (time < time[k] + self.bump_window))[0]
-                add(key, "peak_position_rmse", f"after {time[k]:g} s",
-                    WindowStatistic(self._squared[key], inside, "max"))
+                add(key, "peak_position_rmse", f"after {time[k]:g} s", WindowStatistic(squared[key], inside, "max"))
         return rows
