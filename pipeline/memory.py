@@ -2,27 +2,29 @@
 machine has (``mc.max_memory_gb``, default: what is available when the job starts).
 
 The estimate is built from one run of the scenario and the sensor (a few ms), the size of the
-filters' output and the bootstrap's size: it counts the truth, the measurements and every
-variant's estimates of all runs, and at the peak one variant's table beside its decoded estimate.
-A job now holds one variant's estimate at a time (pipeline.estimates), so this over-counts the
-estimates of the other variants: kept as a cautious bound (a refusal must never let through a job
-that will not fit), not re-fitted to the lower peaks; the intervals resample the runs at every step, in arrays of
-(resamples x steps) that do not grow with the runs. So::
+filters' output and the bootstrap's size. A job holds the truth and the measurements of all runs
+(each beside its table while written), and one variant's estimate at a time (pipeline.estimates):
+at the peak, a variant's track stage holds the filter's output, its table and the estimate decoded
+from it; what the evaluation keeps of each variant (per-step values, bootstrap resamples, per-run
+values) does not grow with the steps times the runs. The intervals resample the runs at every
+step, in arrays of (resamples x steps) that do not grow with the runs. So::
 
-    500 MB + 3 x resamples x steps x 8 B + runs x (2 (truth + measurements) + sum over variants
-    (estimate) + 2 max (estimate))
+    500 MB + 3 x resamples x steps x 8 B + runs x (2 (truth + measurements) + 3 max (estimate))
 
 with an estimate of K steps x T objects x (n + n^2) float64 times 2 (the filters' extras: mode
 probabilities, NIS, ...). The 500 MB is the interpreter with what a job loads (numpy, polars,
 Hydra, scipy.stats, numba and a compiled kernel, rerun for the recording). Against the measured
-peaks of every experiment (whole process, its recording included, status.json's ``peak_rss_mb``:
-the job's own VmHWM), at 2 runs and at the paper's size, measured while every variant was held: 1.10-1.98x at 2 runs (the particle-filter
-jobs closest, 1.10-1.24), 1.34-3.44x at the paper's size (study 003 100 runs 5.2 GB estimated /
-1.55 GB measured: its compact tables hold float32 covariance triangles, a quarter of the float64
-squares counted here; study 002 2.7 / 0.78: 32 targets, small bias estimates). Never below, which
-is what a refusal needs; before the bootstrap term and this baseline, a 2-run study 003 job was
-estimated at 0.38 GB and peaked at 0.65 GB, and the paper-size study 001 and horizontal ADS-B jobs
-were estimated at 0.86-0.93x their own peaks. The estimate is of a job whose numba kernels are
+peaks of all 24 experiments (whole process, its recording included, status.json's ``peak_rss_mb``:
+the job's own VmHWM; isolated launcher, f15c4b4's holding): 1.08-1.99x at 2 runs (the
+particle-filter jobs closest, 1.08-1.21: the baseline is most of their estimate), 1.33-3.02x at the
+paper's size (study 003 100 runs 3.28 GB estimated / 1.08-1.11 GB measured: its compact tables
+hold float32 covariance triangles, a quarter of the float64 squares counted here; study 002 1.91 /
+0.79-0.81: 32 targets, small bias estimates). Never below, which is what a refusal needs. The
+formula before counted every variant's estimates (``+ sum over variants (estimate) + 2 max``), as
+jobs held them until f15c4b4: against today's peaks it gave 1.10-4.80x (study 003 5.2 GB). Before
+the bootstrap term and this baseline, a 2-run study 003 job was estimated at 0.38 GB and peaked at
+0.65 GB, and the paper-size study 001 and horizontal ADS-B jobs were estimated at 0.86-0.93x their
+own peaks. The estimate is of a job whose numba kernels are
 compiled (``__pycache__``): the first job after an install compiles the ones it uses, which adds
 to that job's peak (2 runs in a fresh tree: study 004 663 MB compiling the particle kernel, 481 MB
 after, against 543 MB estimated; study 001 404 MB, then 369 MB).
@@ -43,6 +45,7 @@ from pipeline.uncertainty import RESAMPLES
 BASELINE_BYTES = 500 * 2**20
 EXTRAS_FACTOR = 2.0
 BOOTSTRAP_ARRAYS = 3
+TRACK_STAGE_COPIES = 3           # the filter's output, its table, the estimate decoded from the table
 
 
 def _nbytes(obj: Any) -> int:
@@ -82,7 +85,7 @@ class MemoryEstimate:
     runs: int
     steps: int
     per_run_inputs: int          # truth + measurements, bytes per run
-    per_run_estimates: int       # all variants' estimates, bytes per run
+    per_run_estimates: int       # one variant's track stage (filter output, table, decoded), bytes per run
     per_run_peak: int            # the estimate's bytes per run at the peak
     fixed: int = 0               # what does not grow with the runs: the bootstrap's (resamples x steps) arrays
 
@@ -94,14 +97,14 @@ class MemoryEstimate:
         return max(0, (budget - BASELINE_BYTES - self.fixed) // max(self.per_run_peak, 1))
 
 
-def estimate(scenario: Any, sensor: Any, variants: int, runs: int, seed: int,
-             resamples: int = RESAMPLES) -> MemoryEstimate:
+def estimate(scenario: Any, sensor: Any, runs: int, seed: int, resamples: int = RESAMPLES) -> MemoryEstimate:
     """The peak estimate from one run of the scenario and the sensor (see the module docstring)."""
     truth = scenario.generate(1, seed)
     inputs = _nbytes(truth) + _nbytes(sensor.measure(truth, seed))
     _, K, T, n = truth.state.shape
     per_variant = int(K * T * (n + n * n) * 8 * EXTRAS_FACTOR)
-    return MemoryEstimate(runs, K, inputs, variants * per_variant, 2 * inputs + (variants + 2) * per_variant,
+    track_stage = TRACK_STAGE_COPIES * per_variant              # whatever the number of variants
+    return MemoryEstimate(runs, K, inputs, track_stage, 2 * inputs + track_stage,
                           BOOTSTRAP_ARRAYS * resamples * K * 8)
 
 
@@ -110,7 +113,7 @@ def check(cfg: Any, scenario: Any, sensor: Any, variants: int) -> MemoryEstimate
     null, the memory available now; return the estimate (the runner logs it)."""
     runs, seed = int(cfg.mc.runs), int(cfg.mc.seed)
     resamples = int((cfg.get("uncertainty") or {}).get("bootstrap_resamples", RESAMPLES))
-    guess = estimate(scenario, sensor, variants, runs, seed, resamples)
+    guess = estimate(scenario, sensor, runs, seed, resamples)
     limit_gb = cfg.mc.get("max_memory_gb")
     if limit_gb is not None and (isinstance(limit_gb, bool) or not isinstance(limit_gb, (int, float)) or limit_gb <= 0):
         raise ConfigError(f"mc.max_memory_gb: {limit_gb!r} is not allowed; it must be a number of GB > 0, or null "
@@ -120,8 +123,9 @@ def check(cfg: Any, scenario: Any, sensor: Any, variants: int) -> MemoryEstimate
         where = f"mc.max_memory_gb={limit_gb}" if limit_gb is not None else "available on this machine now"
         raise ConfigError(
             f"mc.runs: {runs} runs need about {guess.peak / 2**30:.1f} GB at the job's peak (estimated from one run: "
-            f"{guess.steps} steps, truth and measurements {guess.per_run_inputs * runs / 2**20:,.0f} MB, the "
-            f"{variants} variants' estimates {guess.per_run_estimates * runs / 2**20:,.0f} MB), more than the "
+            f"{guess.steps} steps, truth and measurements {guess.per_run_inputs * runs / 2**20:,.0f} MB, a "
+            f"variant's track stage {guess.per_run_estimates * runs / 2**20:,.0f} MB, one of the {variants} at a "
+            f"time), more than the "
             f"{budget / 2**30:.1f} GB {where}. Lower mc.runs to at most {guess.max_runs(budget)} (several jobs "
             f"with different mc.seed give independent runs), or, if the estimate is too cautious for your "
             f"filters, set mc.max_memory_gb to what the job may use. Nothing was computed.")
