@@ -57,11 +57,11 @@ def recompute(run_dir: Path) -> tuple[pl.DataFrame, pl.DataFrame]:
     tables = {v: run_dir / "estimates" / f"{v}.parquet" for v in prepared.variants}
     display, faults = {}, {}
     for v, path in tables.items():
-        df, _ = read_table(path)
+        # the fault column alone; the whole table is read and its checksum verified once, below
+        columns = [c for c in ("run", "step", "fault") if c in pl.read_parquet_schema(path)]
         display[v] = str(getattr(prepared.estimators[v], "name", v))
-        faults[v] = fault_summary(flags_from_table(df, runs, steps))
-        del df
-    # read again one variant at a time, as the run held them (pipeline.estimates)
+        faults[v] = fault_summary(flags_from_table(pl.read_parquet(path, columns=columns), runs, steps))
+    # one variant at a time, as the run held them (pipeline.estimates)
     estimates = StoredEstimates(tables, prepared.study.estimate_from_frame)
     evaluated = evaluate_stage(cfg, prepared.study, prepared.sensor, truth, estimates, display, faults, runs)
     return evaluated.metrics, evaluated.summary

@@ -395,7 +395,8 @@ def run_experiment(cfg: DictConfig, ctx: RunContext) -> RunOutcome:
         if stage.output == "truth":       # the windows must fit the scenario before any filtering
             for which in ("windows", "count_windows"):
                 _windows(cfg, which, outputs["truth"].time.size, warn=True)
-        if stage.cache == "track" and stage.output[len("estimates/"):] in estimators:
+        if stage.cache == "track" and stage.output.startswith("estimates/") \
+                and stage.output[len("estimates/"):] in estimators:
             # measured now and let go: a job holds one variant's estimate at a time (pipeline.estimates)
             v = stage.output[len("estimates/"):]
             estimate = outputs[stage.output] if stage.output in read_later else outputs.pop(stage.output)

@@ -621,7 +621,7 @@ def resample(statistics: Sequence[WindowStatistic], seed: int, resamples: int = 
         return []
     runs = statistics[0].values.runs
     if any(s.values.runs != runs for s in statistics):
-        raise ValueError("summarize: every statistic of a job must hold the same Monte Carlo runs")
+        raise ValueError("resample: every statistic of a job must hold the same Monte Carlo runs")
     # group the statistics by their RunValues so each resample computes a metric's per-step values once
     order: dict[int, tuple[RunValues, list[int]]] = {}
     for i, statistic in enumerate(statistics):
