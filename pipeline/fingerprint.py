@@ -98,7 +98,11 @@ def _distributions() -> dict[str, list[str]]:
     return importlib.metadata.packages_distributions()
 
 
+@functools.cache
 def _version_of(top_level: str) -> str:
+    """Cached per process (reading a distribution's metadata scans sys.path, a few ms each, and every
+    stage key asks for several): a process computes with the versions it imported at start, so an
+    upgrade during a long sweep reaches the next process, and with it the next key."""
     names = _distributions().get(top_level) or [top_level]
     versions = []
     for dist in sorted(set(names)):

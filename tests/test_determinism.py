@@ -11,11 +11,10 @@ from pathlib import Path
 
 import polars as pl
 import pytest
-from hydra import compose, initialize_config_dir
 from polars.testing import assert_frame_equal
 
 from pipeline.runner import RunContext, run_experiment
-from tests.conftest import smoke_experiments
+from tests.conftest import composed_config, smoke_experiments
 
 ROOT = Path(__file__).resolve().parents[1]
 # columns that say where and when a table was made, not what it holds
@@ -47,8 +46,7 @@ def assert_same_tables(a: Path, b: Path) -> None:
 
 
 def in_process(artifacts: Path, name: str, *overrides: str) -> Path:
-    with initialize_config_dir(version_base="1.3", config_dir=str(ROOT / "conf")):
-        cfg = compose("config", overrides=[f"paths.artifacts={artifacts}", "record.enabled=false", *overrides])
+    cfg = composed_config(f"paths.artifacts={artifacts}", "record.enabled=false", *overrides)
     ctx = RunContext(artifacts / "runs" / name, artifacts, list(overrides))
     run_experiment(cfg, ctx)
     return ctx.run_dir

@@ -11,16 +11,14 @@ from pathlib import Path
 
 import polars as pl
 import pytest
-from hydra import compose, initialize_config_dir
 
 from pipeline.errors import ConfigError
 from pipeline.runner import RunContext, run_experiment
-from tests.conftest import CONF, ROOT
+from tests.conftest import ROOT, composed_config
 
 
 def compose_cfg(*overrides: str):
-    with initialize_config_dir(version_base="1.3", config_dir=str(CONF)):
-        return compose("config", overrides=list(overrides))
+    return composed_config(*overrides)
 
 
 def run_in_process(tmp_path: Path, name: str, *overrides: str):
