@@ -68,8 +68,7 @@ def validate(cfg: DictConfig) -> None:
     check_targets(cfg)             # before anything imports a _target_ (the kind and type checks do)
     if cfg.get("filters") and cfg.get("sensors") is not None:
         check_measurement_kinds(cfg, selected_variants(cfg))
-    check_interpolations(cfg)
-    check_finite(cfg)
+    check_finite(check_interpolations(cfg))   # one resolution of the whole config serves both
     missing = sorted(OmegaConf.missing_keys(cfg))
     if missing:
         raise ConfigError(f"missing mandatory config value(s) {missing}: select an experiment with "
@@ -213,9 +212,10 @@ def _check_windows(cfg: DictConfig, key: str) -> dict:
     return windows
 
 
-def check_finite(cfg: DictConfig) -> None:
+def check_finite(cfg: DictConfig | dict) -> None:
     """Every number of an experiment is finite: a NaN initial state ran to the end with every estimate
-    NaN and no fault flagged; an infinite noise or bound is no setting either (null says 'none')."""
+    NaN and no fault flagged; an infinite noise or bound is no setting either (null says 'none').
+    ``cfg``: the config, or its resolved container (``check_interpolations`` returns it)."""
     def walk(node: Any, key: str) -> None:
         if isinstance(node, dict):
             for k, v in node.items():
@@ -226,16 +226,17 @@ def check_finite(cfg: DictConfig) -> None:
         elif isinstance(node, float) and not np.isfinite(node):
             raise ConfigError(f"{key}: {node!r} is not allowed; every number of an experiment must be finite "
                               f"(use null where a setting takes 'none', e.g. faults.nees_bound=null).")
-    walk(OmegaConf.to_container(cfg, resolve=True), "")
+    walk(cfg if isinstance(cfg, dict) else OmegaConf.to_container(cfg, resolve=True), "")
 
 
-def check_interpolations(cfg: DictConfig) -> None:
+def check_interpolations(cfg: DictConfig) -> dict:
     """An interpolation (``${models}``) whose key this experiment does not define: one paragraph
-    naming the key, instead of OmegaConf's traceback from deep inside the first stage to read it."""
+    naming the key, instead of OmegaConf's traceback from deep inside the first stage to read it.
+    Returns the resolved config as plain containers."""
     from omegaconf.errors import InterpolationResolutionError
 
     try:
-        OmegaConf.to_container(cfg, resolve=True)
+        return OmegaConf.to_container(cfg, resolve=True)
     except InterpolationResolutionError as exc:
         key = getattr(exc, "full_key", None) or "?"
         raw = OmegaConf.to_container(cfg, resolve=False)
