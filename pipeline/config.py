@@ -68,8 +68,9 @@ def validate(cfg: DictConfig) -> None:
     check_targets(cfg)             # before anything imports a _target_ (the kind and type checks do)
     if cfg.get("filters") and cfg.get("sensors") is not None:
         check_measurement_kinds(cfg, selected_variants(cfg))
-    check_finite(check_interpolations(cfg))   # one resolution of the whole config serves both
-    missing = sorted(OmegaConf.missing_keys(cfg))
+    resolved = check_interpolations(cfg)      # one resolution of the whole config serves the next two
+    check_finite(resolved)
+    missing = sorted(missing_keys(resolved))
     if missing:
         raise ConfigError(f"missing mandatory config value(s) {missing}: select an experiment with "
                           f"experiment=NAME (see conf/experiment/) or set them on the command line.")
@@ -210,6 +211,25 @@ def _check_windows(cfg: DictConfig, key: str) -> dict:
             raise ConfigError(f"metrics.{key}.{name}: {bounds!r} must be [first_step, last_step] with "
                               f"0 <= first_step <= last_step.")
     return windows
+
+
+def missing_keys(node: Any, key: str = "") -> list[str]:
+    """The keys of every mandatory value left unset (``???``, OmegaConf's MISSING) in a resolved config,
+    named as ``OmegaConf.missing_keys`` names them (``a.b``, ``a[0].b``), without its second walk of
+    the config node by node (~0.07 s a job)."""
+    if isinstance(node, dict):
+        children = [(f"{key}.{k}" if key else str(k), v) for k, v in node.items()]
+    elif isinstance(node, list):
+        children = [(f"{key}[{i}]", v) for i, v in enumerate(node)]
+    else:
+        return []
+    found = []
+    for child_key, value in children:
+        if isinstance(value, str) and value == "???":
+            found.append(child_key)
+        else:
+            found += missing_keys(value, child_key)
+    return found
 
 
 def check_finite(cfg: DictConfig | dict) -> None:

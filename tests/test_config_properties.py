@@ -216,3 +216,27 @@ def test_an_unknown_variant_name_is_refused(experiment, name):
     with pytest.raises(ConfigError) as info:
         prepare(_with(experiment, "metrics.reference_variant", name))
     assert name in str(info.value) and "reference_variant" in str(info.value)
+
+
+# ---- pipeline.config.missing_keys names the unset values as OmegaConf.missing_keys does ------------
+_NAMES = st.text(alphabet="abcdefghij_", min_size=1, max_size=4)
+_LEAVES = st.one_of(st.integers(-3, 3), st.sampled_from(["???", "x", "?", "??? ", ""]), st.none())
+_TREES = st.recursive(_LEAVES, lambda children: st.one_of(st.lists(children, max_size=3),
+                                                          st.dictionaries(_NAMES, children, max_size=3)),
+                      max_leaves=12)
+
+
+@EXAMPLES
+@given(tree=st.dictionaries(_NAMES, _TREES, max_size=4))
+def test_the_missing_keys_of_a_resolved_config_are_omegaconfs(tree):
+    """validate reads them off the config it has resolved once, instead of OmegaConf's own walk."""
+    from pipeline.config import missing_keys
+    cfg = OmegaConf.create(tree)
+    assert sorted(missing_keys(OmegaConf.to_container(cfg, resolve=True))) == sorted(OmegaConf.missing_keys(cfg))
+
+
+@pytest.mark.parametrize("experiment", ["ao_vsimm_s1", "sonar_case1"])
+def test_a_mandatory_value_left_unset_is_refused_with_its_key(experiment):
+    key = "mc.seed" if experiment == "ao_vsimm_s1" else "scenario.duration"
+    with pytest.raises(ConfigError, match=rf"missing mandatory config value\(s\) \['{re.escape(key)}'\]"):
+        prepare(_with(experiment, key, "???"))
