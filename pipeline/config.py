@@ -216,7 +216,7 @@ def _check_windows(cfg: DictConfig, key: str) -> dict:
 def missing_keys(node: Any, key: str = "") -> list[str]:
     """The keys of every mandatory value left unset (``???``, OmegaConf's MISSING) in a resolved config,
     named as ``OmegaConf.missing_keys`` names them (``a.b``, ``a[0].b``), without its second walk of
-    the config node by node (~0.07 s a job)."""
+    the config node by node (18 % of ``prepare`` under the profiler)."""
     if isinstance(node, dict):
         children = [(f"{key}.{k}" if key else str(k), v) for k, v in node.items()]
     elif isinstance(node, list):
@@ -232,10 +232,10 @@ def missing_keys(node: Any, key: str = "") -> list[str]:
     return found
 
 
-def check_finite(cfg: DictConfig | dict) -> None:
+def check_finite(resolved: dict) -> None:
     """Every number of an experiment is finite: a NaN initial state ran to the end with every estimate
     NaN and no fault flagged; an infinite noise or bound is no setting either (null says 'none').
-    ``cfg``: the config, or its resolved container (``check_interpolations`` returns it)."""
+    ``resolved``: the config resolved to plain containers (``check_interpolations`` returns it)."""
     def walk(node: Any, key: str) -> None:
         if isinstance(node, dict):
             for k, v in node.items():
@@ -246,7 +246,7 @@ def check_finite(cfg: DictConfig | dict) -> None:
         elif isinstance(node, float) and not np.isfinite(node):
             raise ConfigError(f"{key}: {node!r} is not allowed; every number of an experiment must be finite "
                               f"(use null where a setting takes 'none', e.g. faults.nees_bound=null).")
-    walk(cfg if isinstance(cfg, dict) else OmegaConf.to_container(cfg, resolve=True), "")
+    walk(resolved, "")
 
 
 def check_interpolations(cfg: DictConfig) -> dict:

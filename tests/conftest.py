@@ -51,8 +51,8 @@ ARTIFACTS = "paths.artifacts="
 
 def composed_config(*overrides: str):
     """conf/config.yaml composed with the overrides, unresolved: a copy of one composition per
-    distinct overrides per process (Hydra takes 0.2-0.8 s a composition, a copy ~0.01 s; the
-    collection of the test files alone asked for some 200, the in-process runs for ~150 more).
+    distinct overrides per process (a composition took 0.21 s on 2026-12-03, a copy 0.01 s; the
+    collection of the test files alone asked for some 200, and every in-process run for one more).
     ``paths.artifacts=``, a fresh tmp_path in nearly every call, is set on the copy instead of
     being composed: it is a plain value that only other values interpolate."""
     cfg = copy.deepcopy(_composition(tuple(o for o in overrides if not o.startswith(ARTIFACTS))))

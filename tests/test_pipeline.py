@@ -17,8 +17,7 @@ from pipeline.runner import RunContext, run_experiment
 from tests.conftest import ROOT, composed_config
 
 
-def compose_cfg(*overrides: str):
-    return composed_config(*overrides)
+compose_cfg = composed_config          # the name the other test files import
 
 
 def run_in_process(tmp_path: Path, name: str, *overrides: str):
@@ -193,7 +192,8 @@ def test_a_failed_job_is_recorded_and_the_others_stay_queryable(tmp_path):
 # cost milliseconds each) would otherwise take most of this test's time. One sweep for all of them
 # (each sweep pays for its process, Hydra's composition of every job and the sweep's summary and
 # recording): the overrides suit each of these studies; a key one of them does not use is added
-# ("++") and left unread, which the other studies' scenarios would refuse as not theirs
+# ("++") and left unread (the sonar filters read target_model's keys one by one), which the other
+# studies' scenarios would refuse as not theirs
 SHORTENED = ["sonar_*", "sonobuoy_*", "adsb_*"]
 SHORT = ["++scenario.duration=100", "++target_model.particles=100"]
 
