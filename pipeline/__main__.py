@@ -114,7 +114,9 @@ def entry() -> None:
     1 when it refuses the command line or the config (an unknown key, a missing experiment) before
     any callback ran; our own refusals exit 2; a bug keeps Python's 1 with its traceback."""
     from pipeline import folders
+    from pipeline.compose_once import compose_each_job_once
     register_isolated_launcher()
+    compose_each_job_once()
     try:
         main()
     except SystemExit as exc:
