@@ -221,3 +221,20 @@ def test_an_inconclusive_paired_target_names_the_runs_that_would_decide_it():
     assert result.verdict == "INCONCLUSIVE" and result.point_pass
     runs = int(result.runs_to_decide.split()[1])
     assert 250 <= runs <= 600                                 # (1.96 / ~1)^2 x 100 runs
+
+
+CROSS = TargetSpec("x", "a below b", "p", """WITH ref AS (SELECT "b:position_rmse" AS m FROM wide WHERE "window" = 'all')
+    SELECT CAST("a:position_rmse" AS VARCHAR) AS measured, "a:position_rmse" < ref.m AS pass
+    FROM wide CROSS JOIN ref WHERE "window" = 'all'""")
+
+
+def test_a_target_that_joins_the_wide_table_to_itself_is_judged_resample_by_resample():
+    """On the stacked resamples the self-join pairs every resample with every other (400 x 400 rows),
+    so each resample is queried on its own; the share counts each resample's own verdict."""
+    b = np.full(401, 20.0)
+    a = np.concatenate([[19.0], np.full(389, 19.0), np.full(11, 21.0)])     # 389 of 400 resamples pass
+    result = evaluate_target(_tables_with_resamples(a, b), CROSS)
+    assert result.verdict == "INCONCLUSIVE" and "97.2 % of 400" in result.interval_note
+    a[-1] = 19.0                                                             # 390 of 400: 97.5 %, the bar
+    result = evaluate_target(_tables_with_resamples(a, b), CROSS)
+    assert result.verdict == "PASS" and "97.5 % of 400" in result.interval_note
