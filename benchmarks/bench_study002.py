@@ -14,7 +14,9 @@ What is timed (``time.perf_counter``; estimation only, no data generation):
 
 - the batched variants of ``filters/bias.py`` as configured (``filters.local``, ``.proposed``,
   ``.exx``: output targets 1 and 32), all ``--runs`` runs in one ``.run`` call, median of
-  ``--repeat`` calls;
+  ``--repeat`` calls, each with both engines: the compiled local-filter steps (``engine: numba``,
+  the default; filters/bias_kernel.py, loaded before the clock) and the numpy steps
+  (``engine: numpy``, the reference);
 - the reference loop of the proposed method (``benchmarks/reference_bias.py``: one run, one
   report, one target at a time, covariance-form recursion) on the first ``--loop-runs`` runs,
   once; its time for ``--runs`` runs is extrapolated linearly from its per-run time.
@@ -111,19 +113,26 @@ def main(argv: list[str] | None = None) -> int:
           f"({reports.time[0]:g}..{reports.time[-1]:g} s), {runs} runs, seed {args.seed}")
 
     # ---- batched variants ----------------------------------------------------------------------
+    from filters import bias_kernel
+    bias_kernel.warm_up()                          # numba's start and the kernels' load before any clock
     rows = []
     results = {}
+    numpy_results = {}
     for key in VARIANTS:
-        est = estimators[key]
-        times = []
-        for _ in range(repeat):
-            t0 = time.perf_counter()
-            results[key] = est.run(reports)
-            times.append(time.perf_counter() - t0)
-        seconds = statistics.median(times)
-        rows.append({"name": f"{est.name}, batched", "runs": runs, "seconds": seconds,
-                     "per_run": seconds / runs, "at_runs": seconds, "extrapolated": False})
-        print(f"  {key}: median {seconds:.3f} s of {[round(t, 3) for t in times]}", file=sys.stderr, flush=True)
+        for engine in ("numba", "numpy"):
+            est = estimators[key] if engine == "numba" else build(OmegaConf.merge(cfg.filters[key], {"engine": engine}),
+                                                                 f"filters.{key}")
+            times = []
+            for _ in range(repeat):
+                t0 = time.perf_counter()
+                (results if engine == "numba" else numpy_results)[key] = est.run(reports)
+                times.append(time.perf_counter() - t0)
+            seconds = statistics.median(times)
+            label = "compiled steps" if engine == "numba" else "numpy steps"
+            rows.append({"name": f"{est.name}, batched, {label}", "runs": runs, "seconds": seconds,
+                         "per_run": seconds / runs, "at_runs": seconds, "extrapolated": False})
+            print(f"  {key} ({engine}): median {seconds:.3f} s of {[round(t, 3) for t in times]}", file=sys.stderr,
+                  flush=True)
 
     # ---- reference loop (proposed) -------------------------------------------------------------
     proposed = estimators["proposed"]
@@ -183,6 +192,12 @@ def main(argv: list[str] | None = None) -> int:
             print(f"  [{verdict}] {c['what']}: max = {c['max_abs']:.2e} (tol {c['tol']:g})")
     print(f"  [info] all-targets instance: bias max|d|/prior std = {d_bias_full.max():.2e}; biased local tracks "
           f"max|d| = {d_track.max():.2e} m; bias covariance max|d|/(prior std_a prior std_b) = {d_cov.max():.2e}")
+    for key in VARIANTS:
+        a, b = results[key], numpy_results[key]
+        d_engines = max(float(np.nanmax(np.abs(a.compensated_state - b.compensated_state))),
+                        float(np.nanmax(np.abs(np.nan_to_num(a.bias - b.bias)) / scale)))
+        print(f"  [info] {key}: compiled vs numpy steps, all {runs} runs: max |d| of the compensated tracks [m] and "
+              f"of the bias [prior std] = {d_engines:.2e}")
 
     print()
     base = rows[-1]["at_runs"]

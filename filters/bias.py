@@ -240,20 +240,38 @@ class LocalTracks:
     nis: np.ndarray | None = None
 
 
+ENGINES = ("numba", "numpy")
+
+
 def _cv_move(state: np.ndarray, covariance: np.ndarray, bias_matrix: np.ndarray | None, dt: float,
-             density: float) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+             density: float, engine: str = "numpy") -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
     """Phi X, Phi P Phi' + Q, Phi G with the one shared Phi, one product per track
     (kalman.times_shared: each run's result does not depend on the batch)."""
     F = cv_transition(dt)
+    Q = dcwna_process_noise(dt, density)
+    if engine == "numba":
+        from filters import bias_kernel
+        x, P, G = _flat(state, 4), _flat(covariance, 4, 4), _flat(bias_matrix, 4, 4)
+        out = np.empty_like(x), np.empty_like(P), np.empty_like(G)
+        bias_kernel.cv_move(x, P, G, F, Q, *out)
+        return (out[0].reshape(state.shape), out[1].reshape(covariance.shape),
+                None if bias_matrix is None else out[2].reshape(bias_matrix.shape))
     moved = rows_times(state, F.T)
-    P = shared_times(F, times_shared(covariance, F.T)) + dcwna_process_noise(dt, density)
+    P = shared_times(F, times_shared(covariance, F.T)) + Q
     G = None if bias_matrix is None else shared_times(F, bias_matrix)
     return moved, P, G
 
 
-def predict_local(tracks: LocalTracks, dt: float, density: float) -> LocalTracks:
+def _flat(a: np.ndarray | None, *trailing: int) -> np.ndarray:
+    """A stack (..., *trailing) as C-contiguous float64 (N, *trailing); None as (0, *trailing)."""
+    if a is None:
+        return np.empty((0,) + trailing)
+    return np.ascontiguousarray(a, dtype=float).reshape((-1,) + trailing)
+
+
+def predict_local(tracks: LocalTracks, dt: float, density: float, engine: str = "numpy") -> LocalTracks:
     """Eqs 13-14: X^b and G move with Phi; P gains Q and does not depend on the bias."""
-    return LocalTracks(*_cv_move(tracks.state, tracks.covariance, tracks.bias_matrix, dt, density))
+    return LocalTracks(*_cv_move(tracks.state, tracks.covariance, tracks.bias_matrix, dt, density, engine))
 
 
 def _times_2(A: np.ndarray, B: np.ndarray) -> np.ndarray:
@@ -262,14 +280,17 @@ def _times_2(A: np.ndarray, B: np.ndarray) -> np.ndarray:
     return A[..., :, 0:1] * B[..., 0:1, :] + A[..., :, 1:2] * B[..., 1:2, :]
 
 
-def update_local(predicted: LocalTracks, z_converted: np.ndarray, noise: np.ndarray, bias_columns: np.ndarray
-                 ) -> LocalTracks:
+def update_local(predicted: LocalTracks, z_converted: np.ndarray, noise: np.ndarray, bias_columns: np.ndarray,
+                 engine: str = "numpy") -> LocalTracks:
     """Eqs 16-21 with the converted measurement z^m, its covariance R^m and B C.
 
     G' = (I - K H) Phi G + K B C (eq 20 corrected), P' = (I - K H) P (eq 21, as P - K S K').
     The updated tracks carry each target's NIS nu' S^-1 nu of this update (chi-square, 2 dof, for
-    a consistent filter).
+    a consistent filter). ``engine="numba"``: the same operations per track, compiled
+    (filters/bias_kernel.py), bit for bit these.
     """
+    if engine == "numba":
+        return _update_local_compiled(predicted, z_converted, noise, bias_columns)
     P = predicted.covariance
     PHt = P[..., :, :2]
     S = P[..., :2, :2] + noise                                       # eq 19
@@ -283,6 +304,19 @@ def update_local(predicted: LocalTracks, z_converted: np.ndarray, noise: np.ndar
     G = predicted.bias_matrix
     bias_matrix = G + _times_2(gain, bias_columns - G[..., :2, :])   # eq 20: (I - K H) Phi G + K B C
     return LocalTracks(state, covariance, bias_matrix, nis)
+
+
+def _update_local_compiled(predicted: LocalTracks, z_converted: np.ndarray, noise: np.ndarray,
+                           bias_columns: np.ndarray) -> LocalTracks:
+    from filters import bias_kernel
+    lead = predicted.state.shape[:-1]
+    x, P, G = _flat(predicted.state, 4), _flat(predicted.covariance, 4, 4), _flat(predicted.bias_matrix, 4, 4)
+    out_x, out_P, out_G, nis = np.empty_like(x), np.empty_like(P), np.empty_like(G), np.empty(x.shape[0])
+    bias_kernel.update_local(x, P, G, _flat(np.broadcast_to(z_converted, lead + (2,)), 2),
+                             _flat(np.broadcast_to(noise, lead + (2, 2)), 2, 2),
+                             _flat(np.broadcast_to(bias_columns, lead + (2, 4)), 2, 4), out_x, out_P, out_G, nis)
+    return LocalTracks(out_x.reshape(lead + (4,)), out_P.reshape(lead + (4, 4)), out_G.reshape(lead + (4, 4)),
+                       nis.reshape(lead))
 
 
 def two_point_start(z0: np.ndarray, z1: np.ndarray, noise0: np.ndarray, noise1: np.ndarray,
@@ -394,6 +428,10 @@ class LocalTracking:
         None returns every target
     jacobian_at : "prediction" (B, C, R^m at the radar's predicted track position; spec 002) or
         "measurement" (at the measured range and azimuth; the ablation)
+    engine : "numba" (default): each local filter's move and update is one compiled pass over the
+        tracks (filters/bias_kernel.py); "numpy": the broadcast steps of this module, the reference.
+        The updates are the same bit for bit; a move's products may round differently in the last
+        bit (numpy's matmul), so the two agree to ~1e-15 relative per step.
     """
 
     accepts = frozenset({"biased_radar_reports"})
@@ -402,7 +440,7 @@ class LocalTracking:
 
     def __init__(self, name: str = "local", process_noise_density: float = 6.0, start: str = "truth",
                  prior_std: Sequence[float] = DEFAULT_PRIOR_STD, output_targets: Sequence[int] | None = (1, 32),
-                 jacobian_at: str = "prediction") -> None:
+                 jacobian_at: str = "prediction", engine: str = "numba") -> None:
         if not (np.isfinite(process_noise_density) and process_noise_density >= 0):
             raise ValueError(f"process_noise_density: {process_noise_density} must be a finite q >= 0 m^2/s^3")
         if start not in ("truth", "two_point"):
@@ -421,7 +459,11 @@ class LocalTracking:
         if jacobian_at not in ("prediction", "measurement"):
             raise ValueError(f"jacobian_at: {jacobian_at!r} is not allowed; use 'prediction' (spec 002) or "
                              f"'measurement'")
+        if engine not in ENGINES:
+            raise ValueError(f"engine: {engine!r} must be one of {list(ENGINES)} (numba: the compiled local filter "
+                             f"steps, numpy: the broadcast reference)")
         self.name = name
+        self.engine = engine
         self.process_noise_density = float(process_noise_density)
         self.start = start
         self.prior_std = prior
@@ -451,6 +493,9 @@ class LocalTracking:
         return np.asarray(self.output_targets) - 1
 
     def run(self, reports: RadarReports) -> BiasRegistrationResult:
+        if self.engine == "numba":
+            from filters import bias_kernel
+            bias_kernel.warm_up()               # numba's start before the clock: compute_seconds is the filtering's
         started = _time.perf_counter()
         R, K, T, _ = reports.z.shape
         S = reports.sensors
@@ -486,7 +531,7 @@ class LocalTracking:
             z_converted = converted_measurement(z_polar, position)
             predicted = None
             if tracks[i] is not None:
-                predicted = predict_local(tracks[i], t - last_time[i], self.process_noise_density)
+                predicted = predict_local(tracks[i], t - last_time[i], self.process_noise_density, self.engine)
             if predicted is not None and self.jacobian_at == "prediction":
                 where = polar(predicted.state[..., :2] - position)       # spec 002: the predicted position
             else:
@@ -500,7 +545,7 @@ class LocalTracking:
                 out_bias[:, k] = bias
                 out_bias_cov[:, k] = bias_cov
             if predicted is not None:
-                tracks[i] = update_local(predicted, z_converted, noise, BC)
+                tracks[i] = update_local(predicted, z_converted, noise, BC, self.engine)
                 last_time[i] = t
                 # all T targets, not only the kept ones: the radar's whole local filter, chi2(2T)
                 out_nis[:, k], out_nis_dof[:, k] = nis_over_targets(tracks[i].nis)
@@ -548,13 +593,13 @@ class PseudoBiasRegistration(LocalTracking):
             return state, False
         z, H, Rb = pseudo_bias_measurements(i, z_converted, noise, bias_columns, [tracks[j] for j in others],
                                             others, t - last_time[others], self.process_noise_density,
-                                            len(tracks), self.correlated_pseudo_noise)
+                                            len(tracks), self.correlated_pseudo_noise, self.engine)
         return replace(state, information=add_pseudo_measurements(state.information, z, H, Rb)), True
 
 
 def pseudo_bias_measurements(i: int, z_converted: np.ndarray, noise: np.ndarray, bias_columns: np.ndarray,
                              other_tracks: Sequence[LocalTracks], others: Sequence[int], elapsed: np.ndarray,
-                             density: float, sensors: int, correlated: bool = True
+                             density: float, sensors: int, correlated: bool = True, engine: str = "numpy"
                              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Stacked pseudo bias measurements of radar i's report (eqs 22-32).
 
@@ -571,7 +616,7 @@ def pseudo_bias_measurements(i: int, z_converted: np.ndarray, noise: np.ndarray,
     for row, (j, track, dt) in enumerate(zip(others, other_tracks, elapsed)):
         rows = slice(2 * row, 2 * row + 2)
         predicted_state, predicted_cov, predicted_G = _cv_move(track.state, track.covariance, track.bias_matrix,
-                                                                float(dt), density)
+                                                                float(dt), density, engine)
         z[..., rows] = z_converted - predicted_state[..., :2]                    # eq 22
         H[..., rows, 4 * i:4 * i + 4] = bias_columns                             # eq 25, block i
         H[..., rows, 4 * j:4 * j + 4] = -predicted_G[..., :2, :]                 # eq 25, block j: -H Phi G_j
