@@ -431,7 +431,8 @@ class LocalTracking:
     engine : "numba" (default): each local filter's move and update is one compiled pass over the
         tracks (filters/bias_kernel.py); "numpy": the broadcast steps of this module, the reference.
         The updates are the same bit for bit; a move's products may round differently in the last
-        bit (numpy's matmul), so the two agree to ~1e-15 relative per step.
+        bit (numpy's matmul), so the two agree to rounding (identical on the paper-size async_bias
+        job; see filters/bias_kernel.py).
     """
 
     accepts = frozenset({"biased_radar_reports"})

@@ -238,3 +238,14 @@ def test_a_target_that_joins_the_wide_table_to_itself_is_judged_resample_by_resa
     a[-1] = 19.0                                                             # 390 of 400: 97.5 %, the bar
     result = evaluate_target(_tables_with_resamples(a, b), CROSS)
     assert result.verdict == "PASS" and "97.5 % of 400" in result.interval_note
+
+
+def test_the_resample_queries_run_where_the_system_has_no_affinity_mask(monkeypatch):
+    """macOS and Windows have no os.sched_getaffinity: the report used it unguarded (AttributeError
+    out of the report) to size its threads."""
+    import os
+    monkeypatch.delattr(os, "sched_getaffinity", raising=False)
+    b = np.full(401, 20.0)
+    a = np.concatenate([[19.0], np.full(395, 19.0), np.full(5, 21.0)])
+    result = evaluate_target(_tables_with_resamples(a, b), CROSS)
+    assert result.verdict == "PASS" and "98.8 % of 400" in result.interval_note
