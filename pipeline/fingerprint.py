@@ -18,7 +18,11 @@ make and encode the table. From those it follows imports, statically:
 
 So editing any line of a filter, of a helper it imports, or of a user's module named by
 ``_target_`` changes the key and the stage recomputes; editing the recording or the report does
-not. Parsing is cached per file by (size, mtime), so a run pays for it once per file.
+not. Parsing is cached per file by (size, mtime), so a run pays for it once per file, and its
+result (the imports) is kept beside the file's bytecode under its content hash
+(``__pycache__/<name>.imports.json``), as is the map of installed distributions under a hash of
+what is installed: a fresh process reads them instead of parsing the ~45 files of a study's
+closure (0.75 s) and reading every distribution's metadata (0.29 s).
 """
 
 from __future__ import annotations
@@ -26,6 +30,7 @@ from __future__ import annotations
 import ast
 import functools
 import hashlib
+import json
 import importlib.metadata
 import importlib.util
 import os
@@ -95,7 +100,34 @@ def _location(name: str) -> tuple[str | None, bool, bool]:
 
 @functools.cache
 def _distributions() -> dict[str, list[str]]:
-    return importlib.metadata.packages_distributions()
+    """Top-level import name -> the distributions that install it
+    (``importlib.metadata.packages_distributions``: 0.29 s, as it reads the metadata and file list
+    of every installed distribution), kept beside this module's bytecode under a hash of what is
+    installed: the names of the ``*.dist-info`` / ``*.egg-info`` folders on ``sys.path``, which
+    carry each distribution's version, so installing, upgrading or removing one computes it anew."""
+    installed = _installed()
+    kept = _kept_path(__file__, ".distributions.json")
+    record = _read_record(kept)
+    if record is not None and record.get("installed") == installed:
+        try:
+            return {str(top): [str(d) for d in dists] for top, dists in record["distributions"].items()}
+        except (AttributeError, TypeError):
+            pass
+    found = importlib.metadata.packages_distributions()
+    _write_record(kept, {"format": RECORD_FORMAT, "installed": installed, "distributions": found})
+    return found
+
+
+def _installed() -> str:
+    """sha256 of the distribution folders' names on ``sys.path`` (a listing of each folder: ~1 ms)."""
+    names = []
+    for entry in sys.path:
+        try:
+            with os.scandir(entry or ".") as listing:
+                names += [f"{entry}/{e.name}" for e in listing if e.name.endswith((".dist-info", ".egg-info"))]
+        except OSError:                   # a zip, a missing folder
+            names.append(f"{entry}:unlisted")
+    return hashlib.sha256("\n".join(sorted(names)).encode()).hexdigest()
 
 
 @functools.cache
@@ -113,10 +145,29 @@ def _version_of(top_level: str) -> str:
     return ",".join(versions)
 
 
+RECORD_FORMAT = 1       # of the kept records; bump when _imports_in changes what it finds
+
+
 @functools.cache
 def _parsed(path: str, size: int, mtime_ns: int) -> tuple[str, tuple[tuple[str, int], ...]]:
-    """(sha256 of the file, the imports it makes as (name, relative level))."""
+    """(sha256 of the file, the imports it makes as (name, relative level)): those kept for this
+    very content if there are (a missing, unreadable or other content's record is not trusted,
+    only replaced), else parsed and kept."""
     source = Path(path).read_bytes()
+    digest = hashlib.sha256(source).hexdigest()
+    kept = _kept_path(path, ".imports.json")
+    record = _read_record(kept)
+    if record is not None and record.get("sha256") == digest:
+        try:
+            return digest, tuple((str(name), int(level)) for name, level in record["imports"])
+        except (KeyError, TypeError, ValueError):
+            pass
+    imports = _imports_in(source, path)
+    _write_record(kept, {"format": RECORD_FORMAT, "sha256": digest, "imports": imports})
+    return digest, imports
+
+
+def _imports_in(source: bytes, path: str) -> tuple[tuple[str, int], ...]:
     imports: list[tuple[str, int]] = []
     try:
         tree = ast.parse(source, filename=path)
@@ -131,7 +182,46 @@ def _parsed(path: str, size: int, mtime_ns: int) -> tuple[str, tuple[tuple[str, 
             # 'from pkg import mod' may name submodules: try each as a module too
             imports += [(f"{base}.{alias.name}" if base else alias.name, node.level)
                         for alias in node.names if alias.name != "*"]
-    return hashlib.sha256(source).hexdigest(), tuple(imports)
+    return tuple(imports)
+
+
+def _kept_path(path: str, suffix: str) -> Path | None:
+    """Where a record about a source file is kept: beside its bytecode
+    (``importlib.util.cache_from_source``, so ``sys.pycache_prefix`` is followed), None where Python
+    names no bytecode file. Kept even under PYTHONDONTWRITEBYTECODE (set in many containers, and on
+    this project's machine), as numba keeps its compiled kernels there: it is the pipeline's cache,
+    not Python's bytecode."""
+    try:
+        return Path(importlib.util.cache_from_source(path)).with_suffix(suffix)
+    except (NotImplementedError, ValueError):
+        return None
+
+
+def _read_record(kept: Path | None) -> dict | None:
+    if kept is None:
+        return None
+    try:
+        record = json.loads(kept.read_bytes())
+    except (OSError, ValueError):
+        return None
+    return record if isinstance(record, dict) and record.get("format") == RECORD_FORMAT else None
+
+
+def _write_record(kept: Path | None, record: dict) -> None:
+    """Atomically (a reader sees the old file or the new one); where the folder cannot be written
+    the next process computes it again, as before."""
+    if kept is None:
+        return
+    partial = kept.with_name(f"{kept.name}.{os.getpid()}.partial")
+    try:
+        kept.parent.mkdir(parents=True, exist_ok=True)
+        partial.write_bytes(json.dumps(record).encode())
+        os.replace(partial, kept)
+    except OSError:
+        try:
+            partial.unlink(missing_ok=True)
+        except OSError:
+            pass
 
 
 def _resolve(name: str, level: int, importer: str, is_package: bool) -> str:

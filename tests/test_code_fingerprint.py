@@ -7,6 +7,8 @@ RMSE, because the fingerprint was a hand-kept list of this project's files.
 
 from __future__ import annotations
 
+import hashlib
+import json
 import os
 import re
 import subprocess
@@ -14,6 +16,7 @@ import sys
 from pathlib import Path
 
 import polars as pl
+import pytest
 
 from pipeline import fingerprint, store
 
@@ -151,3 +154,99 @@ def test_a_stage_key_covers_every_target_in_its_config_and_the_library_versions(
     real = fingerprint._version_of
     monkeypatch.setattr(fingerprint, "_version_of", lambda top: "numpy==0.0" if top == "numpy" else real(top))
     assert store.stage_key("track", node, ("abc",)) != key      # another numpy: recompute
+
+
+def _kept_record(module_file: Path) -> Path:
+    return fingerprint._kept_path(str(module_file), ".imports.json")
+
+
+@pytest.fixture
+def fresh_caches(monkeypatch):
+    """Each test's own ``mytrack`` (under its tmp_path): the per-process caches of locations and
+    parses, and the package an earlier test's ``find_spec`` imported, would point at an earlier test's."""
+    for name in [m for m in sys.modules if m == "mytrack" or m.startswith("mytrack.")]:
+        monkeypatch.delitem(sys.modules, name)
+    fingerprint._location.cache_clear()
+    fingerprint._parsed.cache_clear()
+    yield
+    fingerprint._location.cache_clear()
+    fingerprint._parsed.cache_clear()
+
+
+def test_a_fresh_process_reads_the_kept_imports_instead_of_parsing(tmp_path, monkeypatch, fresh_caches):
+    """A file's imports are kept beside its bytecode under its content hash; the next process (a
+    cleared cache here) takes them from there without parsing, and finds the same closure."""
+    write_package(tmp_path, 0.0)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    fingerprint._parsed.cache_clear()
+    closure = fingerprint.closure_modules(["mytrack.cv"])
+    before = fingerprint.source_fingerprint(["mytrack.cv"])
+    record = _kept_record(tmp_path / "mytrack" / "cv.py")
+    assert record.parent == tmp_path / "mytrack" / "__pycache__" and record.is_file()
+    kept = json.loads(record.read_text())
+    assert ["filters.kalman", 0] in kept["imports"] and ["tuning", 1] in kept["imports"]
+
+    fingerprint._parsed.cache_clear()
+    monkeypatch.setattr(fingerprint.ast, "parse", lambda *a, **k: pytest.fail("parsed a file whose imports are kept"))
+    assert fingerprint.closure_modules(["mytrack.cv"]) == closure
+    assert fingerprint.source_fingerprint(["mytrack.cv"]) == before
+
+
+def test_kept_imports_of_other_content_or_unreadable_are_not_trusted(tmp_path, monkeypatch, fresh_caches):
+    """An edit that adds an import is followed although the kept record (of the old content) does
+    not have it; a corrupt record is parsed over and replaced; an unwritable place only costs a parse."""
+    write_package(tmp_path, 0.0)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    fingerprint._parsed.cache_clear()
+    assert "mytrack.extra" not in fingerprint.closure_modules(["mytrack.cv"])
+    (tmp_path / "mytrack" / "extra.py").write_text("VALUE = 1\n")
+    tuning = tmp_path / "mytrack" / "tuning.py"
+    tuning.write_text("from . import extra\nPOSITION_OFFSET = 0.0\nACCELERATION_STD = 20.0\n")
+    fingerprint._parsed.cache_clear()
+    assert "mytrack.extra" in fingerprint.closure_modules(["mytrack.cv"])
+
+    record = _kept_record(tuning)
+    record.write_text('{"format": 1, "sha256": ')                  # a torn write
+    fingerprint._parsed.cache_clear()
+    assert "mytrack.extra" in fingerprint.closure_modules(["mytrack.cv"])
+    assert json.loads(record.read_text())["sha256"] == hashlib.sha256(tuning.read_bytes()).hexdigest()
+
+    blocked = tmp_path / "not_a_folder"
+    blocked.write_text("")
+    monkeypatch.setattr(fingerprint, "_kept_path", lambda path, suffix: blocked / f"x{suffix}")
+    fingerprint._parsed.cache_clear()
+    assert "mytrack.extra" in fingerprint.closure_modules(["mytrack.cv"])
+    assert not list(tmp_path.glob("**/*.partial"))
+
+
+def test_kept_imports_follow_the_bytecode_prefix(tmp_path, monkeypatch, fresh_caches):
+    """``sys.pycache_prefix`` (PYTHONPYCACHEPREFIX) moves the records with the bytecode, out of the source tree."""
+    write_package(tmp_path / "src", 0.0)
+    monkeypatch.syspath_prepend(str(tmp_path / "src"))
+    monkeypatch.setattr(sys, "pycache_prefix", str(tmp_path / "prefix"))
+    fingerprint._parsed.cache_clear()
+    fingerprint.closure_modules(["mytrack.cv"])
+    assert list((tmp_path / "prefix").glob("**/cv.*imports.json"))
+    assert not (tmp_path / "src" / "mytrack" / "__pycache__").exists()
+
+
+def test_the_map_of_installed_distributions_is_kept_until_what_is_installed_changes(tmp_path, monkeypatch):
+    """A fresh process takes the import-name -> distribution map from its record; installing a
+    distribution (a new ``*.dist-info`` on sys.path) makes it read the metadata again."""
+    monkeypatch.setattr(fingerprint, "_kept_path", lambda path, suffix: tmp_path / f"kept{suffix}")
+    monkeypatch.syspath_prepend(str(tmp_path / "site"))
+    (tmp_path / "site").mkdir()
+    fingerprint._distributions.cache_clear()
+    real = fingerprint._distributions()
+    assert "numpy" in real["numpy"]
+    calls = []
+    monkeypatch.setattr(fingerprint.importlib.metadata, "packages_distributions",
+                        lambda: calls.append(1) or {"numpy": ["numpy"], "newpkg": ["newpkg"]})
+    try:
+        fingerprint._distributions.cache_clear()
+        assert fingerprint._distributions() == real and not calls       # read from the record
+        (tmp_path / "site" / "newpkg-1.0.dist-info").mkdir()              # 'pip install newpkg'
+        fingerprint._distributions.cache_clear()
+        assert fingerprint._distributions()["newpkg"] == ["newpkg"] and calls == [1]
+    finally:
+        fingerprint._distributions.cache_clear()
