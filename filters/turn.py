@@ -64,6 +64,10 @@ moment-matched prediction (filters.imm.combined_prediction_nis).
 
 Determinism: every product is per run (stacked matmul, contiguous einsum, sums over the two modes
 in mode order), so a run's estimate does not depend on which runs share its batch (bit for bit).
+
+Engines: ``numba`` (the default) runs each run's scans in one compiled loop
+(``filters.turn_kernel``); ``numpy`` runs the vectorised cycle below over all runs at once and is
+the reference. They agree to rounding (that module says where they differ).
 """
 
 from __future__ import annotations
@@ -78,13 +82,14 @@ from filters.base import MeasurementSeries, TrackEstimate
 from filters.imm import ModeSet, combine, combined_prediction_nis
 from filters.kalman import einsum, update
 from filters.models import two_point_start
-from filters.progress import counted
+from filters.progress import counted, current
 from filters.tracker import cartesian_measurements, to_layout
 
 MODES = ("CV", "CT")
 STATE_NAMES_3D = ("x", "vx", "y", "vy", "z", "vz", "omega")
 STATE_NAMES_2D = ("x", "vx", "y", "vy", "omega")
 SERIES_BELOW = 1e-2     # |omega T| under which turn_coefficients uses its Taylor series
+ENGINES = ("numba", "numpy")
 
 
 def turn_coefficients(omega: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -162,7 +167,8 @@ class CVCTIMM:
     def __init__(self, name: str = "IMM-CV/CT", cv_acceleration_density: float = 1.0,
                  ct_acceleration_density: float = 4.0, turn_rate_density: float = 1e-5,
                  vertical_acceleration_density: float = 2.0, sojourn_times: Sequence[float] = (120.0, 30.0),
-                 initial_mode_probabilities: Sequence[float] = (0.9, 0.1), turn_rate_std: float = 0.05) -> None:
+                 initial_mode_probabilities: Sequence[float] = (0.9, 0.1), turn_rate_std: float = 0.05,
+                 engine: str = "numba") -> None:
         for key, value in (("cv_acceleration_density", cv_acceleration_density),
                            ("ct_acceleration_density", ct_acceleration_density),
                            ("turn_rate_density", turn_rate_density),
@@ -178,7 +184,11 @@ class CVCTIMM:
         if mu0.shape != (2,) or not np.isfinite(mu0).all() or (mu0 < 0).any() or abs(mu0.sum() - 1.0) > 1e-9:
             raise ValueError(f"initial_mode_probabilities: {initial_mode_probabilities!r} must be two "
                              f"probabilities for {list(MODES)} summing to 1")
+        if engine not in ENGINES:
+            raise ValueError(f"engine: {engine!r} must be one of {list(ENGINES)} (numba: the compiled scan loop, "
+                             f"filters/turn_kernel.py; numpy: the vectorised cycle, the reference)")
         self.name = name
+        self.engine = engine
         self.cv_acceleration_density = float(cv_acceleration_density)
         self.ct_acceleration_density = float(ct_acceleration_density)
         self.turn_rate_density = float(turn_rate_density)
@@ -243,7 +253,12 @@ class CVCTIMM:
         return x_pred, 0.5 * (P_pred + np.swapaxes(P_pred, -1, -2))
 
     # ---- run ------------------------------------------------------------------------------------
+    RUNS_PER_CALL = 8       # of the compiled loop; progress is told between calls
+
     def run(self, measurements: MeasurementSeries) -> TrackEstimate:
+        if self.engine == "numba":
+            from filters import turn_kernel
+            turn_kernel.warm_up()           # numba's start before the clock: compute_seconds is the filtering's
         started = time.perf_counter()
         if not isinstance(measurements, MeasurementSeries):
             raise TypeError(f"{self.name}: takes {sorted(self.accepts)} measurements, "
@@ -274,6 +289,44 @@ class CVCTIMM:
         P[..., -1, -1] = self.turn_rate_std**2
         mu = np.broadcast_to(self.initial_mode_probabilities, (R, 2)).copy()
         state[:, 1], covariance[:, 1], mode_probabilities[:, 1] = x[:, 0], P[:, 0], mu
+        if self.engine == "numba":
+            self._run_compiled(z, noise, detected, dts, x, P, mu, state, covariance, mode_probabilities, nis)
+        else:
+            self._run_numpy(z, noise, detected, dts, H, x, P, mu, state, covariance, mode_probabilities, nis)
+        turn_rate = state[..., -1].copy()
+        state, covariance = to_layout(state, covariance, names, tuple(measurements.state_names or names))
+        extras = {"mode_probabilities": mode_probabilities, "turn_rate": turn_rate, "nis": nis,
+                  "nis_dof": np.where(np.isfinite(nis), float(d), 0.0)}
+        return TrackEstimate(times.copy(), state, covariance, extras, time.perf_counter() - started)
+
+    def _run_compiled(self, z, noise, detected, dts, x, P, mu, state, covariance, mode_probabilities, nis) -> None:
+        """Scans 2.. through filters.turn_kernel, a block of runs per call; the per-scan matrices
+        from ``cv_model``, ``ct_noise`` and ``transition_probabilities`` (once per distinct period)."""
+        from filters import turn_kernel
+
+        R, K, _ = z.shape
+        n = x.shape[-1]
+        F_cv, Q_cv, Q_ct = (np.empty((K - 1, n, n)) for _ in range(3))
+        transition = np.empty((K - 1, 2, 2))
+        for dt in np.unique(dts):
+            at = dts == dt
+            F_cv[at], Q_cv[at] = self.cv_model(float(dt), n)
+            Q_ct[at] = self.ct_noise(float(dt), n)
+            transition[at] = self.transition_probabilities(float(dt))
+        # C-contiguous and writeable, as warm_up compiled it: a read-only array (measurements read
+        # from the stage cache) is another numba type, which would compile inside the filter's clock
+        inputs = [np.require(a, requirements=("C", "W"))
+                  for a in (z, noise, detected, dts, F_cv, Q_cv, Q_ct, transition, x, P, mu)]
+        progress = current()
+        progress.start(max(K - 2, 0), "scan", self.name)
+        for first in range(0, R, self.RUNS_PER_CALL):
+            stop = min(R, first + self.RUNS_PER_CALL)
+            turn_kernel.cv_ct_imm(first, stop, *inputs, state, covariance, mode_probabilities, nis)
+            progress.advance(max(K - 2, 0) * (stop - first) / R)
+
+    def _run_numpy(self, z, noise, detected, dts, H, x, P, mu, state, covariance, mode_probabilities, nis) -> None:
+        """Scans 2.., all runs at once: the reference."""
+        R, K, _ = z.shape
         modes = np.broadcast_to(np.arange(2), (R, 2))
         for k in counted(range(2, K), "scan", self.name):
             dt = float(dts[k - 1])
@@ -291,8 +344,3 @@ class CVCTIMM:
             state[:, k], covariance[:, k], mu = combine(cycle)                 # steps 4-5
             mode_probabilities[:, k] = mu
             nis[:, k] = combined_prediction_nis(cycle, z[:, k], noise[:, k], H, seen)
-        turn_rate = state[..., -1].copy()
-        state, covariance = to_layout(state, covariance, names, tuple(measurements.state_names or names))
-        extras = {"mode_probabilities": mode_probabilities, "turn_rate": turn_rate, "nis": nis,
-                  "nis_dof": np.where(np.isfinite(nis), float(d), 0.0)}
-        return TrackEstimate(times.copy(), state, covariance, extras, time.perf_counter() - started)
