@@ -27,6 +27,9 @@ cov(p) = R1, cov(p, v) = R1/T, cov(v) = (R0 + R1)/T^2 (Bar-Shalom et al. 5.5.3; 
 acceleration starts at 0 with variance sigma_m^2); the sonar: the first (active) scan converted,
 relative velocity minus the own-ship's with ``initial_velocity_std``. The estimate is NaN before.
 
+Engines (Cartesian measurements): ``numba`` (the default) runs each run's scans in one compiled
+loop (``filters.kalman_kernel.kalman_cartesian``); ``numpy`` filters all runs at once and is the
+reference. They agree to rounding (that module says where they differ). The sonar EKF runs numpy.
 Output: the state in the order the input names (``MeasurementSeries.state_names``: the layout of
 the truth the study evaluates; for the sonar, filters.mgekf.STATE_NAMES), a component the motion
 model lacks NaN with its covariance row and column (a reduced estimate); ``nis`` / ``nis_dof``
@@ -47,9 +50,10 @@ from filters.coordinates import converted_covariance, polar_to_cartesian
 from filters.mgekf import STATE_NAMES as SONAR_STATE_NAMES
 from filters.mgekf import SonarReports, cv_relative_model, nonlinear_update, relative_motion_model, sonar_start
 from filters.models import singer_process_noise, singer_transition, two_point_start
-from filters.progress import counted
+from filters.progress import counted, current
 
 AXES = ("x", "y", "z")
+ENGINES = ("numba", "numpy")
 
 
 class KalmanTracker:
@@ -59,14 +63,18 @@ class KalmanTracker:
 
     def __init__(self, name: str = "KF", motion: Literal["cv", "singer", "ca"] = "singer", tau: float = 10.0,
                  sigma_m: float = 5.0, acceleration_density: float = 10.0, initial_velocity_std: float = 15.0,
-                 jerk_density: float = 1.0) -> None:
+                 jerk_density: float = 1.0, engine: str = "numba") -> None:
         if motion not in ("cv", "singer", "ca"):
             raise ValueError(f"motion: {motion!r} is not one of ['cv', 'singer', 'ca']")
         for key, value in (("tau", tau), ("sigma_m", sigma_m), ("acceleration_density", acceleration_density),
                            ("initial_velocity_std", initial_velocity_std), ("jerk_density", jerk_density)):
             if not (np.isfinite(value) and value > 0):
                 raise ValueError(f"{key}: {value} must be a finite number > 0")
+        if engine not in ENGINES:
+            raise ValueError(f"engine: {engine!r} must be one of {list(ENGINES)} (numba: the compiled scan loop, "
+                             f"filters/kalman_kernel.py; numpy: the vectorised scans, the reference)")
         self.name = name
+        self.engine = engine
         self.motion = motion
         self.tau, self.sigma_m = float(tau), float(sigma_m)
         self.acceleration_density = float(acceleration_density)
@@ -98,7 +106,12 @@ class KalmanTracker:
         return tuple(f"{k}{a}" for a in AXES[:axes] for k in kin)
 
     # ---- run ------------------------------------------------------------------------------------
+    RUNS_PER_CALL = 8       # of the compiled loop; progress is told between calls
+
     def run(self, measurements) -> TrackEstimate:
+        if self.engine == "numba" and isinstance(measurements, MeasurementSeries):
+            from filters import kalman_kernel
+            kalman_kernel.warm_up()         # numba's start before the clock: compute_seconds is the filtering's
         started = time.perf_counter()
         if isinstance(measurements, SonarReports):
             state, covariance, names, extras = self._run_sonar(measurements)
@@ -137,6 +150,18 @@ class KalmanTracker:
         # two-point start at scan 1, with the two scans' own covariances
         x, P = two_point_start(z[:, 0], z[:, 1], noise[:, 0], noise[:, 1], dt, nk, self.sigma_m**2)
         states[:, 1], covariances[:, 1] = x, P
+        if self.engine == "numba":
+            from filters import kalman_kernel
+            # C-contiguous and writeable, as warm_up compiled it (read-only measurements are another numba type)
+            inputs = [np.require(a, requirements=("C", "W")) for a in (z, noise, detected, F, Q)]
+            start = [np.require(a, requirements=("C", "W")) for a in (x, P)]
+            progress = current()
+            progress.start(max(K - 2, 0), "scan", self.name)
+            for first in range(0, R, self.RUNS_PER_CALL):
+                stop = min(R, first + self.RUNS_PER_CALL)
+                kalman_kernel.kalman_cartesian(first, stop, *inputs, nk, *start, states, covariances, nis)
+                progress.advance(max(K - 2, 0) * (stop - first) / R)
+            return states, covariances, {"nis": nis, "nis_dof": np.where(np.isfinite(nis), float(d), 0.0)}
         for k in counted(range(2, K), "scan", self.name):
             # per-run products only (filters.kalman): a 2-D x @ F' over the runs is one BLAS call whose
             # rounding depends on how many runs share it, and einsum's on its operands' strides

@@ -30,6 +30,7 @@ import numpy as np
 from numba import njit
 
 from filters.kalman import LOG_2PI
+from filters.kalman_kernel import inverse_and_logdet
 from filters.turn import SERIES_BELOW
 
 _JIT = dict(nogil=True, cache=True, error_model="numpy", boundscheck=False)
@@ -95,44 +96,6 @@ def _propagate(F, P, Q, tmp, out):
             m = 0.5 * (out[i, j] + out[j, i])
             out[i, j] = m
             out[j, i] = m
-
-
-@njit(forceinline=True, **_JIT)
-def _inverse_and_logdet(S, d, S_inv):
-    """S_inv and log det S of the (d, d) innovation covariance, d = 2 or 3: 2 x 2 in closed form as
-    ``kalman.inverse_2x2``; 3 x 3 by its Cholesky factor L, S^-1 = L^-T L^-1 (``kalman.inverse_and_logdet``).
-    A matrix that is not positive definite gives NaN (numpy raised LinAlgError there)."""
-    if d == 2:
-        det = S[0, 0] * S[1, 1] - S[0, 1] * S[1, 0]
-        S_inv[0, 0] = S[1, 1] / det
-        S_inv[0, 1] = -S[0, 1] / det
-        S_inv[1, 0] = -S[1, 0] / det
-        S_inv[1, 1] = S[0, 0] / det
-        return math.log(det) if det > 0 else math.nan
-    l00 = math.sqrt(S[0, 0]) if S[0, 0] > 0 else math.nan
-    l10 = S[1, 0] / l00
-    l20 = S[2, 0] / l00
-    r11 = S[1, 1] - l10 * l10
-    l11 = math.sqrt(r11) if r11 > 0 else math.nan
-    l21 = (S[2, 1] - l20 * l10) / l11
-    r22 = S[2, 2] - l20 * l20 - l21 * l21
-    l22 = math.sqrt(r22) if r22 > 0 else math.nan
-    i00 = 1.0 / l00                                     # L^-1, lower triangular
-    i11 = 1.0 / l11
-    i22 = 1.0 / l22
-    i10 = -l10 * i00 / l11
-    i21 = -l21 * i11 / l22
-    i20 = -(l20 * i00 + l21 * i10) / l22
-    S_inv[0, 0] = i00 * i00 + i10 * i10 + i20 * i20     # (L^-1)' L^-1
-    S_inv[0, 1] = i10 * i11 + i20 * i21
-    S_inv[0, 2] = i20 * i22
-    S_inv[1, 1] = i11 * i11 + i21 * i21
-    S_inv[1, 2] = i21 * i22
-    S_inv[2, 2] = i22 * i22
-    S_inv[1, 0] = S_inv[0, 1]
-    S_inv[2, 0] = S_inv[0, 2]
-    S_inv[2, 1] = S_inv[1, 2]
-    return 2.0 * (math.log(l00) + math.log(l11) + math.log(l22))
 
 
 @njit(**_JIT)
@@ -219,7 +182,7 @@ def cv_ct_imm(first, stop, z, noise, detected, dts, F_cv, Q_cv, Q_ct, transition
                     nu[p] = z[r, k, p] - x_pred[m, 2 * p]
                     for q in range(d):
                         S[p, q] = P_pred[m, 2 * p, 2 * q] + noise[r, k, p, q]
-                logdet = _inverse_and_logdet(S, d, S_inv)
+                logdet = inverse_and_logdet(S, d, S_inv)
                 for a in range(n):
                     for q in range(d):
                         s = 0.0
@@ -298,7 +261,7 @@ def cv_ct_imm(first, stop, z, noise, detected, dts, F_cv, Q_cv, Q_ct, transition
                     Pc[a, b] = (c0 * (P_pred[0, a, b] + dx[0, a] * dx[0, b])
                                 + c1 * (P_pred[1, a, b] + dx[1, a] * dx[1, b]))
                     S[p, q] = Pc[a, b] + noise[r, k, p, q]
-            _inverse_and_logdet(S, d, S_inv)
+            inverse_and_logdet(S, d, S_inv)
             nis = 0.0
             for p in range(d):
                 s = 0.0
