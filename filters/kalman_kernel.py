@@ -67,6 +67,58 @@ def inverse_and_logdet(S, d, S_inv):
 
 
 
+@njit(forceinline=True, **_JIT)
+def quadratic_form(S_inv, nu):
+    """nu' S^-1 nu, the sums in index order."""
+    total = 0.0
+    for p in range(nu.shape[0]):
+        s = 0.0
+        for q in range(nu.shape[0]):
+            s += S_inv[p, q] * nu[q]
+        total += nu[p] * s
+    return total
+
+
+@njit(forceinline=True, **_JIT)
+def update_positions(x, P, z, noise, stride, S, S_inv, gain, nu, tmp):
+    """The Kalman update of (x, P) in place on a measurement z (d,) of the positions, state index
+    p * ``stride`` for axis p (H picks them), noise (d, d): nu = z - H x, S = H P H' + R,
+    K = P H' S^-1, x += K nu, P = sym(P - K (P H')') (``kalman.update``). Returns
+    (nu' S^-1 nu, log det S); S, S_inv, gain (n, d), nu (d,) and tmp (n, n) are work arrays."""
+    n = x.shape[0]
+    d = z.shape[0]
+    for p in range(d):
+        nu[p] = z[p] - x[stride * p]
+        for q in range(d):
+            S[p, q] = P[stride * p, stride * q] + noise[p, q]
+    logdet = inverse_and_logdet(S, d, S_inv)
+    for a in range(n):                                  # K = P H' S^-1
+        for q in range(d):
+            s = 0.0
+            for p in range(d):
+                s += P[a, stride * p] * S_inv[p, q]
+            gain[a, q] = s
+    mahalanobis = quadratic_form(S_inv, nu)
+    for a in range(n):
+        s = 0.0
+        for q in range(d):
+            s += gain[a, q] * nu[q]
+        x[a] += s
+    for a in range(n):                                  # P - K (P H')'
+        for b in range(n):
+            s = 0.0
+            for q in range(d):
+                s += gain[a, q] * P[b, stride * q]
+            tmp[a, b] = P[a, b] - s
+    for a in range(n):
+        P[a, a] = tmp[a, a]
+        for b in range(a + 1, n):
+            v = 0.5 * (tmp[a, b] + tmp[b, a])
+            P[a, b] = v
+            P[b, a] = v
+    return mahalanobis, logdet
+
+
 @njit(**_JIT)
 def kalman_cartesian(first, stop, z, noise, detected, F, Q, kinematics, x_start, P_start,
                      out_state, out_covariance, out_nis):
@@ -111,40 +163,7 @@ def kalman_cartesian(first, stop, z, noise, detected, F, Q, kinematics, x_start,
                         s += F[a, c] * tmp[c, b]
                     P[a, b] = s + Q[a, b]
             if detected[r, k]:
-                for p in range(d):
-                    nu[p] = z[r, k, p] - x[kinematics * p]
-                    for q in range(d):
-                        S[p, q] = P[kinematics * p, kinematics * q] + noise[r, k, p, q]
-                inverse_and_logdet(S, d, S_inv)
-                for a in range(n):                      # K = P H' S^-1
-                    for q in range(d):
-                        s = 0.0
-                        for p in range(d):
-                            s += P[a, kinematics * p] * S_inv[p, q]
-                        gain[a, q] = s
-                nis = 0.0
-                for p in range(d):
-                    s = 0.0
-                    for q in range(d):
-                        s += S_inv[p, q] * nu[q]
-                    nis += nu[p] * s
-                for a in range(n):
-                    s = 0.0
-                    for q in range(d):
-                        s += gain[a, q] * nu[q]
-                    x[a] += s
-                for a in range(n):                      # P' - K (P' H')'
-                    for b in range(n):
-                        s = 0.0
-                        for q in range(d):
-                            s += gain[a, q] * P[b, kinematics * q]
-                        tmp[a, b] = P[a, b] - s
-                for a in range(n):
-                    P[a, a] = tmp[a, a]
-                    for b in range(a + 1, n):
-                        v = 0.5 * (tmp[a, b] + tmp[b, a])
-                        P[a, b] = v
-                        P[b, a] = v
+                nis, _ = update_positions(x, P, z[r, k], noise[r, k], kinematics, S, S_inv, gain, nu, tmp)
                 out_nis[r, k] = nis
             else:
                 out_nis[r, k] = math.nan

@@ -30,7 +30,7 @@ import numpy as np
 from numba import njit
 
 from filters.kalman import LOG_2PI
-from filters.kalman_kernel import inverse_and_logdet
+from filters.kalman_kernel import inverse_and_logdet, quadratic_form, update_positions
 from filters.turn import SERIES_BELOW
 
 _JIT = dict(nogil=True, cache=True, error_model="numpy", boundscheck=False)
@@ -171,47 +171,15 @@ def cv_ct_imm(first, stop, z, noise, detected, dts, F_cv, Q_cv, Q_ct, transition
             # step 3, update on the position (H picks x, y[, z]: state indices 0, 2[, 4])
             seen = detected[r, k]
             for m in range(2):
-                if not seen:
-                    for a in range(n):
-                        x[m, a] = x_pred[m, a]
-                        for b in range(n):
-                            P[m, a, b] = P_pred[m, a, b]
-                    log_likelihood[m] = 0.0
-                    continue
-                for p in range(d):
-                    nu[p] = z[r, k, p] - x_pred[m, 2 * p]
-                    for q in range(d):
-                        S[p, q] = P_pred[m, 2 * p, 2 * q] + noise[r, k, p, q]
-                logdet = inverse_and_logdet(S, d, S_inv)
                 for a in range(n):
-                    for q in range(d):
-                        s = 0.0
-                        for p in range(d):
-                            s += P_pred[m, a, 2 * p] * S_inv[p, q]
-                        gain[a, q] = s
-                mahalanobis = 0.0
-                for p in range(d):
-                    s = 0.0
-                    for q in range(d):
-                        s += S_inv[p, q] * nu[q]
-                    mahalanobis += nu[p] * s
-                for a in range(n):
-                    s = 0.0
-                    for q in range(d):
-                        s += gain[a, q] * nu[q]
-                    x[m, a] = x_pred[m, a] + s
-                for a in range(n):
+                    x[m, a] = x_pred[m, a]
                     for b in range(n):
-                        s = 0.0
-                        for q in range(d):
-                            s += gain[a, q] * P_pred[m, b, 2 * q]
-                        P[m, a, b] = P_pred[m, a, b] - s
-                for a in range(n):
-                    for b in range(a + 1, n):
-                        v = 0.5 * (P[m, a, b] + P[m, b, a])
-                        P[m, a, b] = v
-                        P[m, b, a] = v
-                log_likelihood[m] = -0.5 * (mahalanobis + logdet + d * LOG_2PI)
+                        P[m, a, b] = P_pred[m, a, b]
+                log_likelihood[m] = 0.0                 # a missed scan keeps the predictions
+                if seen:
+                    mahalanobis, logdet = update_positions(x[m], P[m], z[r, k], noise[r, k], 2, S, S_inv, gain,
+                                                           nu, tmp)
+                    log_likelihood[m] = -0.5 * (mahalanobis + logdet + d * LOG_2PI)
             # step 4: mode probabilities mu_j = c_j L_j / sum (in logs, scaled by the largest)
             lw0 = (math.log(predicted[0]) if predicted[0] > 0 else -math.inf) + log_likelihood[0]
             lw1 = (math.log(predicted[1]) if predicted[1] > 0 else -math.inf) + log_likelihood[1]
@@ -262,13 +230,7 @@ def cv_ct_imm(first, stop, z, noise, detected, dts, F_cv, Q_cv, Q_ct, transition
                                 + c1 * (P_pred[1, a, b] + dx[1, a] * dx[1, b]))
                     S[p, q] = Pc[a, b] + noise[r, k, p, q]
             inverse_and_logdet(S, d, S_inv)
-            nis = 0.0
-            for p in range(d):
-                s = 0.0
-                for q in range(d):
-                    s += S_inv[p, q] * nu[q]
-                nis += nu[p] * s
-            out_nis[r, k] = nis
+            out_nis[r, k] = quadratic_form(S_inv, nu)
 
 
 _warm = False

@@ -1,6 +1,7 @@
 """filters.kalman_kernel: the KalmanTracker's compiled scan loop against its numpy scans (the
-reference) for every motion model and both Cartesian measurement kinds, with missed scans; batch
-independence; read-only measurements running the signature warm_up compiled."""
+reference) for every motion model and both Cartesian measurement kinds, with missed scans;
+read-only measurements running the signature warm_up compiled. Batch independence, for both
+engines: tests/test_tracker_batch.py."""
 
 from __future__ import annotations
 
@@ -34,17 +35,6 @@ def test_the_compiled_loop_is_the_numpy_scans(motion, kind):
         # measured: <= 3e-16 (state), 3e-15 (covariance), 3e-13 (NIS) of the largest entry; the
         # Cholesky inverse of S against LAPACK's LU and index-order sums are the only differences
         assert np.nanmax(np.abs(a - b)) <= 1e-11 * scale, (name, np.nanmax(np.abs(a - b)) / scale)
-
-
-def test_a_run_in_a_batch_gets_the_same_estimate_as_alone_bit_for_bit():
-    m = series("range_azimuth_elevation")
-    tracker = KalmanTracker(motion="singer", engine="numba")
-    batch = tracker.run(m)
-    for r in range(m.runs):
-        alone = tracker.run(m.select([r]))
-        np.testing.assert_array_equal(batch.state[r:r + 1], alone.state)
-        np.testing.assert_array_equal(batch.covariance[r:r + 1], alone.covariance)
-        np.testing.assert_array_equal(batch.extras["nis"][r:r + 1], alone.extras["nis"])
 
 
 def test_read_only_measurements_run_the_warmed_up_signature():

@@ -139,9 +139,10 @@ def test_on_a_straight_line_the_cv_mode_dominates_and_the_turn_rate_is_zero():
 
 
 # ---- (c) batch independence ------------------------------------------------------------------------
-def test_a_run_in_a_batch_gets_the_same_estimate_as_alone_bit_for_bit():
+@pytest.mark.parametrize("engine", ["numba", "numpy"])
+def test_a_run_in_a_batch_gets_the_same_estimate_as_alone_bit_for_bit(engine):
     m = radar_series(np.random.default_rng(7))
-    imm = CVCTIMM()
+    imm = CVCTIMM(engine=engine)
     batch = imm.run(m)
     for r in range(m.runs):
         alone = imm.run(m.select([r]))

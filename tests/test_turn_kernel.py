@@ -1,7 +1,8 @@
 """filters.turn_kernel: the CV/CT IMM's compiled scan loop against the numpy cycle (the reference),
-on turns, straight legs, missed scans, varying scan periods and both measurement kinds; batch
-independence; and read-only inputs (measurements read back from the stage cache) running the
-signature warm_up compiled, not a new one inside the filter's clock."""
+on turns, straight legs, missed scans, varying scan periods and both measurement kinds, and
+read-only inputs (measurements read back from the stage cache) running the
+signature warm_up compiled, not a new one inside the filter's clock. Batch independence, for both
+engines: tests/test_turn.py."""
 
 from __future__ import annotations
 
@@ -71,18 +72,6 @@ def test_a_mode_that_cannot_be_entered_is_mixed_with_its_own_probability_in_both
     np.testing.assert_array_equal(ours.extras["mode_probabilities"][:, 1:, 1], 0.0)
     np.testing.assert_allclose(ours.state, theirs.state, rtol=1e-12, atol=1e-9)
     np.testing.assert_allclose(ours.extras["nis"], theirs.extras["nis"], rtol=1e-10)
-
-
-def test_a_run_in_a_batch_gets_the_same_estimate_as_alone_bit_for_bit():
-    m = turning_positions(np.random.default_rng(8), R=5, K=60)
-    imm = CVCTIMM(engine="numba")
-    batch = imm.run(m)
-    for r in range(m.runs):
-        alone = imm.run(m.select([r]))
-        np.testing.assert_array_equal(batch.state[r:r + 1], alone.state)
-        np.testing.assert_array_equal(batch.covariance[r:r + 1], alone.covariance)
-        for name, value in batch.extras.items():
-            np.testing.assert_array_equal(value[r:r + 1], alone.extras[name], err_msg=name)
 
 
 def test_read_only_measurements_run_the_warmed_up_signature():
