@@ -12,7 +12,7 @@ range/azimuth/elevation, or 2-D positions for the ``*_horizontal`` experiments).
 What is timed: ``compute_seconds`` of one ``.run`` over all runs (the filter's own clock: the
 measurement conversion, the start, the scans and the output layout; numba's load happens before
 it), the median of ``--repeat`` calls, with the compiled loop (``engine: numba``, the default:
-filters/kalman_kernel.py, filters/turn_kernel.py) and the numpy scans (``engine: numpy``, the
+filters/kalman_kernel.py) and the numpy scans (``engine: numpy``, the
 reference). It also prints the largest difference between the two engines' states, covariances
 and NIS, relative to each output's largest entry. No timing assertions.
 """

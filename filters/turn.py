@@ -66,7 +66,7 @@ Determinism: every product is per run (stacked matmul, contiguous einsum, sums o
 in mode order), so a run's estimate does not depend on which runs share its batch (bit for bit).
 
 Engines: ``numba`` (the default) runs each run's scans in one compiled loop
-(``filters.turn_kernel``); ``numpy`` runs the vectorised cycle below over all runs at once and is
+(``filters.kalman_kernel.cv_ct_imm``); ``numpy`` runs the vectorised cycle below over all runs at once and is
 the reference. They agree to rounding (that module says where they differ).
 """
 
@@ -186,7 +186,7 @@ class CVCTIMM:
                              f"probabilities for {list(MODES)} summing to 1")
         if engine not in ENGINES:
             raise ValueError(f"engine: {engine!r} must be one of {list(ENGINES)} (numba: the compiled scan loop, "
-                             f"filters/turn_kernel.py; numpy: the vectorised cycle, the reference)")
+                             f"filters/kalman_kernel.py; numpy: the vectorised cycle, the reference)")
         self.name = name
         self.engine = engine
         self.cv_acceleration_density = float(cv_acceleration_density)
@@ -257,8 +257,8 @@ class CVCTIMM:
 
     def run(self, measurements: MeasurementSeries) -> TrackEstimate:
         if self.engine == "numba":
-            from filters import turn_kernel
-            turn_kernel.warm_up()           # numba's start before the clock: compute_seconds is the filtering's
+            from filters import kalman_kernel
+            kalman_kernel.warm_up()         # numba's start before the clock: compute_seconds is the filtering's
         started = time.perf_counter()
         if not isinstance(measurements, MeasurementSeries):
             raise TypeError(f"{self.name}: takes {sorted(self.accepts)} measurements, "
@@ -300,9 +300,9 @@ class CVCTIMM:
         return TrackEstimate(times.copy(), state, covariance, extras, time.perf_counter() - started)
 
     def _run_compiled(self, z, noise, detected, dts, x, P, mu, state, covariance, mode_probabilities, nis) -> None:
-        """Scans 2.. through filters.turn_kernel, a block of runs per call; the per-scan matrices
+        """Scans 2.. through filters.kalman_kernel.cv_ct_imm, a block of runs per call; the per-scan matrices
         from ``cv_model``, ``ct_noise`` and ``transition_probabilities`` (once per distinct period)."""
-        from filters import turn_kernel
+        from filters import kalman_kernel
 
         R, K, _ = z.shape
         n = x.shape[-1]
@@ -315,13 +315,13 @@ class CVCTIMM:
             transition[at] = self.transition_probabilities(float(dt))
         # C-contiguous and writeable, as warm_up compiled it: a read-only array (measurements read
         # from the stage cache) is another numba type, which would compile inside the filter's clock
-        inputs = [np.require(a, requirements=("C", "W"))
-                  for a in (z, noise, detected, dts, F_cv, Q_cv, Q_ct, transition, x, P, mu)]
+        inputs = [np.require(a, requirements=("C", "W")) for a in (z, noise, detected, dts, F_cv, Q_cv, Q_ct, transition)]
+        start = [np.require(a, requirements=("C", "W")) for a in (x, P, mu)]
         progress = current()
         progress.start(max(K - 2, 0), "scan", self.name)
         for first in range(0, R, self.RUNS_PER_CALL):
             stop = min(R, first + self.RUNS_PER_CALL)
-            turn_kernel.cv_ct_imm(first, stop, *inputs, state, covariance, mode_probabilities, nis)
+            kalman_kernel.cv_ct_imm(first, stop, *inputs, SERIES_BELOW, *start, state, covariance, mode_probabilities, nis)
             progress.advance(max(K - 2, 0) * (stop - first) / R)
 
     def _run_numpy(self, z, noise, detected, dts, H, x, P, mu, state, covariance, mode_probabilities, nis) -> None:

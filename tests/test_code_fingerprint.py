@@ -7,6 +7,7 @@ RMSE, because the fingerprint was a hand-kept list of this project's files.
 
 from __future__ import annotations
 
+import ast
 import hashlib
 import json
 import os
@@ -250,3 +251,25 @@ def test_the_map_of_installed_distributions_is_kept_until_what_is_installed_chan
         assert fingerprint._distributions()["newpkg"] == ["newpkg"] and calls == [1]
     finally:
         fingerprint._distributions.cache_clear()
+
+
+def test_a_compiled_kernel_module_imports_nothing_of_the_project():
+    """numba's cache (cache=True) re-validates a compiled function by its own file only (numba issue
+    #1833): a kernel that called a compiled function, or read a constant, from another project
+    module kept running the old code after that module was edited (found when kalman_kernel's
+    positive-definite check reached the CV/CT IMM loop, then in its own module, only after its
+    cache was cleared), while the stage key, which follows the imports, recomputed with it."""
+    kernels = sorted((ROOT / "filters").glob("*_kernel.py")) + [ROOT / "pipeline" / "kernels.py"]
+    assert len(kernels) >= 7
+    for path in kernels:
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.ImportFrom):
+                names = [node.module or ""]
+                assert node.level == 0, f"{path.name}: relative import"
+            elif isinstance(node, ast.Import):
+                names = [alias.name for alias in node.names]
+            else:
+                continue
+            for name in names:
+                top = name.partition(".")[0]
+                assert top in ("__future__", "math", "numpy", "numba", "llvmlite"), f"{path.name} imports {name}"

@@ -50,3 +50,22 @@ def test_read_only_measurements_run_the_warmed_up_signature():
 def test_an_unknown_engine_is_refused_with_the_choices():
     with pytest.raises(ValueError, match=r"^engine: 'gpu' must be one of \['numba', 'numpy'\]"):
         KalmanTracker(engine="gpu")
+
+
+@pytest.mark.parametrize("filter_class", ["kf", "imm"])
+def test_an_innovation_covariance_that_is_not_positive_definite_spoils_only_its_own_run(filter_class):
+    """A run whose S is not positive definite (a negative noise variance reported at one scan) gets NaN
+    from that scan on, which the fault flags report as nonfinite; the other runs are the runs
+    filtered without it. (numpy's Cholesky, the IMM's in 3-D, raised for the whole batch; the KF's
+    LU solve and the 2 x 2 closed forms went on with numbers.)"""
+    from filters.turn import CVCTIMM
+    m = series("position_xy")
+    noise = np.broadcast_to(np.asarray(m.noise_covariance, float), m.z.shape + (2,)).copy()
+    k = 10 + int(np.argmax(m.detected[0, 10:]))     # a detected scan of run 0
+    noise[0, k] = -1e9 * np.eye(2)                   # negative definite: its determinant is > 0
+    bad = replace(m, noise_covariance=noise)
+    make = (lambda: KalmanTracker(motion="cv")) if filter_class == "kf" else (lambda: CVCTIMM())
+    estimate = make().run(bad)
+    assert np.isfinite(estimate.state[0, 1:k, 0]).all() and np.isnan(estimate.state[0, k:]).all()
+    rest = make().run(m.select(list(range(1, m.runs))))
+    np.testing.assert_array_equal(estimate.state[1:], rest.state)

@@ -1,4 +1,4 @@
-"""filters.turn_kernel: the CV/CT IMM's compiled scan loop against the numpy cycle (the reference),
+"""filters.kalman_kernel.cv_ct_imm: the CV/CT IMM's compiled scan loop against the numpy cycle (the reference),
 on turns, straight legs, missed scans, varying scan periods and both measurement kinds, and
 read-only inputs (measurements read back from the stage cache) running the
 signature warm_up compiled, not a new one inside the filter's clock. Batch independence, for both
@@ -11,7 +11,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from filters import turn_kernel
+from filters import kalman_kernel
 from filters.turn import CVCTIMM
 from tests.test_turn import circle, positions_series, radar_series
 
@@ -78,13 +78,13 @@ def test_read_only_measurements_run_the_warmed_up_signature():
     """Measurements read back from the stage cache are read-only arrays, another numba type: passed
     as they were, the first such job on a machine compiled the loop again inside its clock (6.4 s
     of 'filtered in' on the horizontal ADS-B job, against 0.33 s)."""
-    turn_kernel.warm_up()
-    signatures = len(turn_kernel.cv_ct_imm.signatures)
+    kalman_kernel.warm_up()
+    signatures = len(kalman_kernel.cv_ct_imm.signatures)
     m = turning_positions(np.random.default_rng(3), R=2, K=20)
     z, detected = m.z.copy(), m.detected.copy()
     z.flags.writeable = detected.flags.writeable = False
     CVCTIMM(engine="numba").run(replace(m, z=z, detected=detected))
-    assert len(turn_kernel.cv_ct_imm.signatures) == signatures
+    assert len(kalman_kernel.cv_ct_imm.signatures) == signatures
 
 
 def test_an_unknown_engine_is_refused_with_the_choices():
