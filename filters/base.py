@@ -7,6 +7,7 @@ notebook with arrays built by hand.
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass, field, replace
 from typing import ClassVar, Mapping, Protocol, Sequence
 
@@ -160,3 +161,13 @@ class Estimator(Protocol):
     accepts: ClassVar[frozenset[str]]
 
     def run(self, measurements: MeasurementSeries) -> TrackEstimate: ...
+
+
+def usable_processors() -> int:
+    """The processors this process may run on: its affinity mask where the system has one (Linux:
+    a job pinned by ``taskset`` or a batch system's cgroup gets its share, not the machine's count),
+    else the machine's count (macOS and Windows have no ``os.sched_getaffinity``)."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):
+        return os.cpu_count() or 1

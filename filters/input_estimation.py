@@ -61,7 +61,7 @@ from filters.coordinates import (converted_covariance, line_of_sight_angles, los
                                  polar_to_cartesian)
 from filters.kalman import einsum, rows_times
 from filters.models import singer_input_gain, singer_process_noise, singer_transition
-from filters.progress import counted, current
+from filters.progress import counted, counted_runs
 
 # (axis, kinematic) -> inertial output order (x, y, z, vx, vy, vz, ax, ay, az)
 _KIN_MAJOR = [a * 3 + kin for kin in range(3) for a in range(3)]
@@ -127,12 +127,8 @@ class _MIEBase:
         outputs = _outputs(R, K)
         nis = np.full((R, K), np.nan)
         loop = self._compiled_loop(mie_kernel, z, polar_var, float(dt), outputs, nis)
-        progress = current()
-        progress.start(max(K - 2, 0), "scan", self.name)
-        for first in range(0, R, self.RUNS_PER_CALL):
-            stop = min(R, first + self.RUNS_PER_CALL)
+        for first, stop in counted_runs(R, max(K - 2, 0), self.name, self.RUNS_PER_CALL):
             loop(first, stop)
-            progress.advance(max(K - 2, 0) * (stop - first) / R)
         out_x, out_P, level_out, detected_out, axis_out, stat_out, onset_out = outputs
         extras = {"input_level": level_out, "maneuver_detected": detected_out, "test_statistic": stat_out,
                   "onset_step": onset_out, **_nis_extras(nis, 3)}

@@ -15,8 +15,8 @@
 
 numpy filtered all runs at once: the KalmanTracker with one batched LAPACK solve of S per scan
 (0.48 ms for 100 runs of 3 x 3: the call, not the arithmetic), 0.6-0.8 s of each Kalman variant of a
-100-run, 901-scan ADS-B job; the IMM with ~60 broadcast operations over the (runs, 2, 7, 7) stack per
-scan, 2.2-2.7 s (2026-12-03). What differs here, at rounding level: S inverted by its Cholesky factor
+100-run, 901-scan ADS-B job; the IMM with a scan's mixing, predictions, update and combination as
+broadcast operations over the (runs, 2, 7, 7) stack, 2.2-2.7 s (2026-12-03). What differs here, at rounding level: S inverted by its Cholesky factor
 in closed form (numpy: LU for the KalmanTracker, LAPACK's Cholesky and triangular solve for the
 IMM, LU for its NIS), products as sums in index order (numpy: BLAS). tests/test_tracker_kernel.py
 and tests/test_turn_kernel.py hold the engines together for every motion model, both measurement

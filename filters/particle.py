@@ -55,7 +55,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from filters.base import TrackEstimate
+from filters.base import TrackEstimate, usable_processors
 from filters.kalman import einsum, rows_times
 from filters.progress import SILENT, Progress
 from filters.progress import current as current_progress
@@ -315,10 +315,7 @@ def available_processors() -> int:
     env = os.environ.get("NUMBA_NUM_THREADS", "").strip()
     if env.isdigit() and int(env) > 0:
         return int(env)
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except (AttributeError, OSError):
-        return os.cpu_count() or 1
+    return usable_processors()
 
 
 _MASK64 = (1 << 64) - 1

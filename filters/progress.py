@@ -67,6 +67,20 @@ def counted(steps: range, unit: str = "scan", label: str | None = None) -> Itera
         progress.advance(done)
 
 
+def counted_runs(runs: int, scans: int, label: str | None = None, per_call: int = 8,
+                 unit: str = "scan") -> Iterator[tuple[int, int]]:
+    """(first, stop) blocks of ``per_call`` runs, for a compiled loop that filters runs first..stop-1
+    over all their ``scans`` in one call; whoever listens hears ``start(scans)`` first and, after
+    each block, its share of the scans (``scans * (stop - first) / runs``). A filter reads
+    ``for first, stop in counted_runs(R, K - 2, self.name): kernel(first, stop, ...)``."""
+    progress = current()
+    progress.start(scans, unit, label)
+    for first in range(0, runs, per_call):
+        stop = min(runs, first + per_call)
+        yield first, stop
+        progress.advance(scans * (stop - first) / runs)
+
+
 @contextmanager
 def listening(listener: Progress) -> Iterator[Progress]:
     """``listener`` hears what the code run inside the block reports."""

@@ -50,7 +50,7 @@ from filters.coordinates import converted_covariance, polar_to_cartesian
 from filters.mgekf import STATE_NAMES as SONAR_STATE_NAMES
 from filters.mgekf import SonarReports, cv_relative_model, nonlinear_update, relative_motion_model, sonar_start
 from filters.models import singer_process_noise, singer_transition, two_point_start
-from filters.progress import counted, current
+from filters.progress import counted, counted_runs
 
 AXES = ("x", "y", "z")
 ENGINES = ("numba", "numpy")
@@ -155,12 +155,8 @@ class KalmanTracker:
             # C-contiguous and writeable, as warm_up compiled it (read-only measurements are another numba type)
             inputs = [np.require(a, requirements=("C", "W")) for a in (z, noise, detected, F, Q)]
             start = [np.require(a, requirements=("C", "W")) for a in (x, P)]
-            progress = current()
-            progress.start(max(K - 2, 0), "scan", self.name)
-            for first in range(0, R, self.RUNS_PER_CALL):
-                stop = min(R, first + self.RUNS_PER_CALL)
+            for first, stop in counted_runs(R, max(K - 2, 0), self.name, self.RUNS_PER_CALL):
                 kalman_kernel.kalman_cartesian(first, stop, *inputs, nk, *start, states, covariances, nis)
-                progress.advance(max(K - 2, 0) * (stop - first) / R)
             return states, covariances, {"nis": nis, "nis_dof": np.where(np.isfinite(nis), float(d), 0.0)}
         for k in counted(range(2, K), "scan", self.name):
             # per-run products only (filters.kalman): a 2-D x @ F' over the runs is one BLAS call whose

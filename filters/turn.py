@@ -82,7 +82,7 @@ from filters.base import MeasurementSeries, TrackEstimate
 from filters.imm import ModeSet, combine, combined_prediction_nis
 from filters.kalman import einsum, update
 from filters.models import two_point_start
-from filters.progress import counted, current
+from filters.progress import counted, counted_runs
 from filters.tracker import cartesian_measurements, to_layout
 
 MODES = ("CV", "CT")
@@ -317,12 +317,8 @@ class CVCTIMM:
         # from the stage cache) is another numba type, which would compile inside the filter's clock
         inputs = [np.require(a, requirements=("C", "W")) for a in (z, noise, detected, dts, F_cv, Q_cv, Q_ct, transition)]
         start = [np.require(a, requirements=("C", "W")) for a in (x, P, mu)]
-        progress = current()
-        progress.start(max(K - 2, 0), "scan", self.name)
-        for first in range(0, R, self.RUNS_PER_CALL):
-            stop = min(R, first + self.RUNS_PER_CALL)
+        for first, stop in counted_runs(R, max(K - 2, 0), self.name, self.RUNS_PER_CALL):
             kalman_kernel.cv_ct_imm(first, stop, *inputs, SERIES_BELOW, *start, state, covariance, mode_probabilities, nis)
-            progress.advance(max(K - 2, 0) * (stop - first) / R)
 
     def _run_numpy(self, z, noise, detected, dts, H, x, P, mu, state, covariance, mode_probabilities, nis) -> None:
         """Scans 2.., all runs at once: the reference."""

@@ -208,20 +208,16 @@ def _read_record(kept: Path | None) -> dict | None:
 
 
 def _write_record(kept: Path | None, record: dict) -> None:
-    """Atomically (a reader sees the old file or the new one); where the folder cannot be written
-    the next process computes it again, as before."""
+    """Atomically (``store.atomic_write_bytes``: a reader sees the old file or the new one); where
+    the folder cannot be written the next process computes it again, as before."""
+    from pipeline.errors import StorageError
+    from pipeline.store import atomic_write_bytes
     if kept is None:
         return
-    partial = kept.with_name(f"{kept.name}.{os.getpid()}.partial")
     try:
-        kept.parent.mkdir(parents=True, exist_ok=True)
-        partial.write_bytes(json.dumps(record).encode())
-        os.replace(partial, kept)
-    except OSError:
-        try:
-            partial.unlink(missing_ok=True)
-        except OSError:
-            pass
+        atomic_write_bytes(json.dumps(record).encode(), kept)
+    except StorageError:
+        pass
 
 
 def _resolve(name: str, level: int, importer: str, is_package: bool) -> str:

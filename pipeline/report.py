@@ -383,6 +383,8 @@ def _each_resample(tables: RunTables, query: str, wide: pl.DataFrame, count: int
     target from 1.8 s to 0.75 s (one resample filtered out per query, one after another, before)."""
     from concurrent.futures import ThreadPoolExecutor
 
+    from filters.base import usable_processors
+
     parts = wide.partition_by("resample", as_dict=True, include_key=False, maintain_order=True)
     empty = wide.head(0).drop("resample")
 
@@ -393,18 +395,8 @@ def _each_resample(tables: RunTables, query: str, wide: pl.DataFrame, count: int
             return None
         return df["pass"][0] if df.height == 1 and "pass" in df.columns else None
 
-    with ThreadPoolExecutor(max_workers=max(1, min(count, _usable_cores()))) as pool:
+    with ThreadPoolExecutor(max_workers=max(1, min(count, usable_processors()))) as pool:
         return list(pool.map(passes, range(count)))
-
-
-def _usable_cores() -> int:
-    """The cores this process may run on (its affinity mask, where the system has one: Linux), else
-    the machine's count (macOS and Windows have no ``os.sched_getaffinity``)."""
-    import os
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except (AttributeError, OSError):
-        return os.cpu_count() or 1
 
 
 def evaluate_finding(tables: RunTables, spec: FindingSpec) -> str:

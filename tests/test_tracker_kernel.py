@@ -13,7 +13,7 @@ import pytest
 from filters import kalman_kernel
 from filters.tracker import KalmanTracker
 from tests.test_turn import radar_series
-from tests.test_turn_kernel import turning_positions
+from tests.test_turn_kernel import assert_same_to_rounding, turning_positions
 
 
 def series(kind: str):
@@ -26,15 +26,9 @@ def series(kind: str):
 @pytest.mark.parametrize("motion", ["cv", "ca", "singer"])
 def test_the_compiled_loop_is_the_numpy_scans(motion, kind):
     m = series(kind)
-    ours = KalmanTracker(motion=motion, engine="numba").run(m)
-    theirs = KalmanTracker(motion=motion, engine="numpy").run(m)
-    for name, a, b in (("state", ours.state, theirs.state), ("covariance", ours.covariance, theirs.covariance),
-                       *((key, ours.extras[key], theirs.extras[key]) for key in theirs.extras)):
-        np.testing.assert_array_equal(np.isnan(a), np.isnan(b), err_msg=name)
-        scale = max(float(np.nanmax(np.abs(b))), 1.0)
-        # measured: <= 3e-16 (state), 3e-15 (covariance), 3e-13 (NIS) of the largest entry; the
-        # Cholesky inverse of S against LAPACK's LU and index-order sums are the only differences
-        assert np.nanmax(np.abs(a - b)) <= 1e-11 * scale, (name, np.nanmax(np.abs(a - b)) / scale)
+    # measured: <= 3e-16 (state), 3e-15 (covariance), 3e-13 (NIS) of the largest entry
+    assert_same_to_rounding(KalmanTracker(motion=motion, engine="numba").run(m),
+                            KalmanTracker(motion=motion, engine="numpy").run(m))
 
 
 def test_read_only_measurements_run_the_warmed_up_signature():
