@@ -142,6 +142,46 @@ def update_positions(x, P, z, noise, stride, S, S_inv, gain, nu, tmp):
     return mahalanobis, logdet
 
 
+@njit(forceinline=True, **_JIT)
+def _times_vector(F, x, out):
+    """out = F x (n,)."""
+    n = x.shape[0]
+    for a in range(n):
+        s = 0.0
+        for b in range(n):
+            s += F[a, b] * x[b]
+        out[a] = s
+
+
+@njit(forceinline=True, **_JIT)
+def _propagate(F, P, Q, tmp, out):
+    """out = F (P F') + Q (n, n) (``kalman.predict``); ``out`` may be ``P`` (tmp holds P F' first)."""
+    n = P.shape[0]
+    for i in range(n):
+        for j in range(n):
+            s = 0.0
+            for k in range(n):
+                s += P[i, k] * F[j, k]
+            tmp[i, j] = s
+    for i in range(n):
+        for j in range(n):
+            s = 0.0
+            for k in range(n):
+                s += F[i, k] * tmp[k, j]
+            out[i, j] = s + Q[i, j]
+
+
+@njit(forceinline=True, **_JIT)
+def _symmetrise(M):
+    """M = (M + M') / 2 in place."""
+    n = M.shape[0]
+    for i in range(n):
+        for j in range(i + 1, n):
+            m = 0.5 * (M[i, j] + M[j, i])
+            M[i, j] = m
+            M[j, i] = m
+
+
 @njit(**_JIT)
 def kalman_cartesian(first, stop, z, noise, detected, F, Q, kinematics, x_start, P_start,
                      out_state, out_covariance, out_nis):
@@ -167,24 +207,9 @@ def kalman_cartesian(first, stop, z, noise, detected, F, Q, kinematics, x_start,
             for b in range(n):
                 P[a, b] = P_start[r, a, b]
         for k in range(2, K):
-            for a in range(n):                          # x' = F x
-                s = 0.0
-                for b in range(n):
-                    s += F[a, b] * x[b]
-                x_pred[a] = s
-            for a in range(n):                          # P F'
-                for b in range(n):
-                    s = 0.0
-                    for c in range(n):
-                        s += P[a, c] * F[b, c]
-                    tmp[a, b] = s
-            for a in range(n):                          # F (P F') + Q
-                x[a] = x_pred[a]
-                for b in range(n):
-                    s = 0.0
-                    for c in range(n):
-                        s += F[a, c] * tmp[c, b]
-                    P[a, b] = s + Q[a, b]
+            _times_vector(F, x, x_pred)                 # x' = F x, P' = F (P F') + Q
+            x[:] = x_pred
+            _propagate(F, P, Q, tmp, P)
             if detected[r, k]:
                 nis, _ = update_positions(x, P, z[r, k], noise[r, k], kinematics, S, S_inv, gain, nu, tmp)
                 out_nis[r, k] = nis
@@ -234,29 +259,6 @@ def _coordinated_turn(x, dt, series_below, f, F):
     if n == 7:                                          # vertical CV channel
         f[4] = x[4] + dt * x[5]
         F[4, 5] = dt
-
-
-@njit(forceinline=True, **_JIT)
-def _propagate(F, P, Q, tmp, out):
-    """out = sym(F P F' + Q) (n, n)."""
-    n = P.shape[0]
-    for i in range(n):
-        for j in range(n):
-            s = 0.0
-            for k in range(n):
-                s += P[i, k] * F[j, k]
-            tmp[i, j] = s
-    for i in range(n):
-        for j in range(n):
-            s = 0.0
-            for k in range(n):
-                s += F[i, k] * tmp[k, j]
-            out[i, j] = s + Q[i, j]
-    for i in range(n):
-        for j in range(i + 1, n):
-            m = 0.5 * (out[i, j] + out[j, i])
-            out[i, j] = m
-            out[j, i] = m
 
 
 @njit(**_JIT)
@@ -322,14 +324,12 @@ def cv_ct_imm(first, stop, z, noise, detected, dts, F_cv, Q_cv, Q_ct, transition
                 for a in range(n):
                     x_mix[j, a] += x[0, a]
             # step 3, prediction: the CV Kalman filter and the CT EKF
-            for a in range(n):
-                s = 0.0
-                for b in range(n):
-                    s += F_cv[k - 1, a, b] * x_mix[0, b]
-                x_pred[0, a] = s
+            _times_vector(F_cv[k - 1], x_mix[0], x_pred[0])
             _propagate(F_cv[k - 1], P_mix[0], Q_cv[k - 1], tmp, P_pred[0])
+            _symmetrise(P_pred[0])
             _coordinated_turn(x_mix[1], dt, series_below, x_pred[1], F_ct)
             _propagate(F_ct, P_mix[1], Q_ct[k - 1], tmp, P_pred[1])
+            _symmetrise(P_pred[1])
             # step 3, update on the position (H picks x, y[, z]: state indices 0, 2[, 4])
             seen = detected[r, k]
             for m in range(2):
