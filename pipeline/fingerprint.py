@@ -21,8 +21,8 @@ So editing any line of a filter, of a helper it imports, or of a user's module n
 not. Parsing is cached per file by (size, mtime), so a run pays for it once per file, and its
 result (the imports) is kept beside the file's bytecode under its content hash
 (``__pycache__/<name>.imports.json``), as is the map of installed distributions under a hash of
-what is installed: a fresh process reads them instead of parsing the ~45 files of a study's
-closure (0.75 s) and reading every distribution's metadata (0.29 s).
+what is installed: a fresh process reads them instead of parsing the 46 files of an ADS-B job's
+closure (0.69-0.83 s) and reading every distribution's metadata (0.20-0.30 s).
 """
 
 from __future__ import annotations
