@@ -20,7 +20,7 @@ from hydra.types import RunMode
 from omegaconf import DictConfig
 
 from pipeline.errors import PipelineError
-from pipeline.memory import release_freed_memory
+from pipeline.memory import exempt_survivors_from_collection, release_freed_memory
 from pipeline.objective import objective_value, trial_result
 from pipeline.runner import RunContext, describe_exception, job_context, record_job_failure, run_experiment
 
@@ -37,6 +37,7 @@ def main(cfg: DictConfig) -> float | None:
     finally:
         if multirun:          # the next job of a one-process sweep starts from what this one freed
             release_freed_memory()
+            exempt_survivors_from_collection()     # later jobs' collections skip what lives on
 
 
 def _run(cfg: DictConfig, hc: DictConfig, multirun: bool, ctx: RunContext) -> float | None:
