@@ -53,8 +53,10 @@ FREEZE = textwrap.dedent("""
 
     held = cycle()
     release_freed_memory()
+    walked_before = len(gc.get_objects())     # what a full collection traverses
     first = exempt_survivors_from_collection()
     frozen = gc.get_freeze_count()
+    walked_after = len(gc.get_objects())
     second = exempt_survivors_from_collection()
     gone = []
     fresh = cycle()                  # made after the freeze: a later job's garbage
@@ -66,7 +68,7 @@ FREEZE = textwrap.dedent("""
     gc.collect(); gc.freeze()        # (as if it had lived through the first job)
     weakref.finalize(plain, gone.append, "plain")
     del plain, survivor
-    print(first, second, frozen, " ".join(sorted(gone)))
+    print(first, second, frozen, walked_before, walked_after, " ".join(sorted(gone)))
 """)
 
 
@@ -76,9 +78,10 @@ def test_a_sweeps_long_lived_objects_are_frozen_once_and_later_garbage_still_col
     leaves the permanent generation as it is. A cycle made afterwards is still collected, and a
     frozen object is still freed when its last reference goes."""
     out = subprocess.run([sys.executable, "-c", FREEZE], capture_output=True, text=True, check=True, cwd=ROOT).stdout
-    first, second, frozen, *gone = out.split()
+    first, second, frozen, walked_before, walked_after, *gone = out.split()
     assert (first, second) == ("True", "False")
     assert int(frozen) > 1000, frozen      # the interpreter's and pipeline's objects, the held cycle
+    assert int(walked_after) < int(walked_before) // 10, out    # collections no longer walk them
     assert gone == ["fresh", "plain"], out
 
 
