@@ -171,3 +171,15 @@ def usable_processors() -> int:
         return max(1, len(os.sched_getaffinity(0)))
     except (AttributeError, OSError):
         return os.cpu_count() or 1
+
+
+ENGINES = ("numba", "numpy")     # a filter with a compiled loop: numba (the default) or its numpy reference
+
+
+def checked_engine(engine: str, compiled: str) -> str:
+    """``engine`` when it is one of ``ENGINES``; else a ValueError naming the value, what is allowed
+    and what the compiled engine runs (``compiled``, e.g. "the compiled scan loop, filters/mgekf_kernel.py")."""
+    if engine not in ENGINES:
+        raise ValueError(f"engine: {engine!r} must be one of {list(ENGINES)} (numba: {compiled}; numpy: the "
+                         f"vectorised reference)")
+    return engine

@@ -44,6 +44,7 @@ from typing import Sequence
 
 import numpy as np
 
+from filters.base import checked_engine
 from filters.kalman import einsum, inverse_2x2, rows_times, shared_times, times_shared
 from filters.progress import counted
 
@@ -240,7 +241,6 @@ class LocalTracks:
     nis: np.ndarray | None = None
 
 
-ENGINES = ("numba", "numpy")
 
 
 def _cv_move(state: np.ndarray, covariance: np.ndarray, bias_matrix: np.ndarray | None, dt: float,
@@ -460,9 +460,7 @@ class LocalTracking:
         if jacobian_at not in ("prediction", "measurement"):
             raise ValueError(f"jacobian_at: {jacobian_at!r} is not allowed; use 'prediction' (spec 002) or "
                              f"'measurement'")
-        if engine not in ENGINES:
-            raise ValueError(f"engine: {engine!r} must be one of {list(ENGINES)} (numba: the compiled local filter "
-                             f"steps, numpy: the broadcast reference)")
+        checked_engine(engine, "the compiled local filter steps, filters/bias_kernel.py")
         self.name = name
         self.engine = engine
         self.process_noise_density = float(process_noise_density)

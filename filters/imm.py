@@ -34,7 +34,7 @@ from typing import Literal
 
 import numpy as np
 
-from filters.base import MeasurementSeries, TrackEstimate
+from filters.base import MeasurementSeries, TrackEstimate, checked_engine
 from filters.kalman import einsum, predict, rows_times, shared_times, times_shared, update
 from filters.models import AccelerationModelSet, two_point_initialisation, two_point_start
 from filters.progress import counted
@@ -174,7 +174,6 @@ class LinearModelBank:
                    models.measurement_matrix)
 
 
-ENGINES = ("numba", "numpy")
 
 
 def compiled_shapes(bank: LinearModelBank) -> bool:
@@ -343,8 +342,7 @@ class _IMMBase:
 
     def __init__(self, models: AccelerationModelSet, name: str, initial_model: str = "m1",
                  engine: str = "numba") -> None:
-        if engine not in ENGINES:
-            raise ValueError(f"engine: {engine!r} must be one of {list(ENGINES)}")
+        checked_engine(engine, "the compiled IMM cycle, filters/imm_kernel.py")
         self.models = models
         self.name = name
         self.bank = LinearModelBank.from_model_set(models)

@@ -56,7 +56,7 @@ from typing import Literal
 
 import numpy as np
 
-from filters.base import MeasurementSeries, TrackEstimate
+from filters.base import MeasurementSeries, TrackEstimate, checked_engine
 from filters.coordinates import (converted_covariance, line_of_sight_angles, los_noise_variances, los_rotation,
                                  polar_to_cartesian)
 from filters.kalman import einsum, rows_times
@@ -79,15 +79,12 @@ class _MIEBase:
     accepts = frozenset({"range_azimuth_elevation"})   # converted in the filter (notes 2.1)
     name: str
     TESTS: tuple[str, ...] = ()
-    ENGINES = ("numba", "numpy")
     RUNS_PER_CALL = 8             # progress is told between calls of the compiled loop
 
     def __init__(self, name: str, tau: float, sigma_m: float, window: int, min_samples: int, threshold: float,
                  test: str, rearm_after: int | None, level_uncertainty: bool, compensate: bool,
                  level_correlation: bool, engine: str = "numba") -> None:
-        if engine not in self.ENGINES:
-            raise ValueError(f"engine: {engine!r} must be one of {list(self.ENGINES)} (numba: the compiled loop, "
-                             f"filters/mie_kernel.py; numpy: the vectorised scans, the reference)")
+        checked_engine(engine, "the compiled loop, filters/mie_kernel.py")
         if test not in self.TESTS:
             raise ValueError(f"test: {test!r} is not one of {list(self.TESTS)}")
         if not (np.isfinite(tau) and tau > 0):

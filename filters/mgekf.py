@@ -72,13 +72,12 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from filters.base import TrackEstimate
+from filters.base import TrackEstimate, checked_engine
 from filters.kalman import einsum, rows_times, shared_times, times_shared
 from filters.models import singer_process_noise, singer_transition
 from filters.progress import counted, current
 
 STATE_NAMES = ("x", "y", "vx", "vy", "ax", "ay")
-ENGINES = ("numba", "numpy")
 
 
 # --------------------------------------------------------------------------------------------
@@ -346,9 +345,7 @@ class _SonarTracker:
         if not (0 < clamp < 1):
             raise ValueError(f"clamp: {clamp} must be in (0, 1): the bearing row's denominator floor as a "
                              f"fraction of the range")
-        if engine not in ENGINES:
-            raise ValueError(f"engine: {engine!r} must be one of {list(ENGINES)} (numba: the compiled scan loop, "
-                             f"filters/mgekf_kernel.py; numpy: the vectorised scans, the reference)")
+        checked_engine(engine, "the compiled scan loop, filters/mgekf_kernel.py")
         self.engine = engine
         self.name = name
         self.tau = float(tau)

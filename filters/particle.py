@@ -55,7 +55,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from filters.base import TrackEstimate, usable_processors
+from filters.base import TrackEstimate, checked_engine, usable_processors
 from filters.kalman import einsum, rows_times
 from filters.progress import SILENT, Progress
 from filters.progress import current as current_progress
@@ -305,7 +305,6 @@ def _stack(generators, draw) -> np.ndarray:
     return np.stack([draw(g) for g in generators])
 
 
-ENGINES = ("numba", "numpy")
 
 
 def available_processors() -> int:
@@ -477,8 +476,7 @@ class MultipleModelParticleFilter(_ModelParameters):
             raise ValueError(f"workers: {workers!r} must be an integer >= 1 or null (one per processor)")
         if not (isinstance(snapshot_particles, int) and 0 <= snapshot_particles <= particles):
             raise ValueError(f"snapshot_particles: {snapshot_particles!r} must be an integer in [0, particles]")
-        if engine not in ENGINES:
-            raise ValueError(f"engine: {engine!r} must be one of {list(ENGINES)}")
+        checked_engine(engine, "the compiled particle scan, filters/particle_kernel.py")
         self.engine = engine
         self.snapshot_particles = snapshot_particles
         self.particles = particles

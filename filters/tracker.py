@@ -43,7 +43,7 @@ from typing import Literal
 
 import numpy as np
 
-from filters.base import MeasurementSeries, TrackEstimate
+from filters.base import MeasurementSeries, TrackEstimate, checked_engine
 from filters.kalman import einsum as kalman_einsum
 from filters.kalman import predict, rows_times
 from filters.coordinates import converted_covariance, polar_to_cartesian
@@ -53,7 +53,6 @@ from filters.models import singer_process_noise, singer_transition, two_point_st
 from filters.progress import counted, counted_runs
 
 AXES = ("x", "y", "z")
-ENGINES = ("numba", "numpy")
 
 
 class KalmanTracker:
@@ -70,9 +69,7 @@ class KalmanTracker:
                            ("initial_velocity_std", initial_velocity_std), ("jerk_density", jerk_density)):
             if not (np.isfinite(value) and value > 0):
                 raise ValueError(f"{key}: {value} must be a finite number > 0")
-        if engine not in ENGINES:
-            raise ValueError(f"engine: {engine!r} must be one of {list(ENGINES)} (numba: the compiled scan loop, "
-                             f"filters/kalman_kernel.py; numpy: the vectorised scans, the reference)")
+        checked_engine(engine, "the compiled scan loop, filters/kalman_kernel.py")
         self.name = name
         self.engine = engine
         self.motion = motion

@@ -78,7 +78,7 @@ from typing import Sequence
 
 import numpy as np
 
-from filters.base import MeasurementSeries, TrackEstimate
+from filters.base import MeasurementSeries, TrackEstimate, checked_engine
 from filters.imm import ModeSet, combine, combined_prediction_nis
 from filters.kalman import einsum, update
 from filters.models import two_point_start
@@ -89,7 +89,6 @@ MODES = ("CV", "CT")
 STATE_NAMES_3D = ("x", "vx", "y", "vy", "z", "vz", "omega")
 STATE_NAMES_2D = ("x", "vx", "y", "vy", "omega")
 SERIES_BELOW = 1e-2     # |omega T| under which turn_coefficients uses its Taylor series
-ENGINES = ("numba", "numpy")
 
 
 def turn_coefficients(omega: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -184,9 +183,7 @@ class CVCTIMM:
         if mu0.shape != (2,) or not np.isfinite(mu0).all() or (mu0 < 0).any() or abs(mu0.sum() - 1.0) > 1e-9:
             raise ValueError(f"initial_mode_probabilities: {initial_mode_probabilities!r} must be two "
                              f"probabilities for {list(MODES)} summing to 1")
-        if engine not in ENGINES:
-            raise ValueError(f"engine: {engine!r} must be one of {list(ENGINES)} (numba: the compiled scan loop, "
-                             f"filters/kalman_kernel.py; numpy: the vectorised cycle, the reference)")
+        checked_engine(engine, "the compiled scan loop, filters/kalman_kernel.py")
         self.name = name
         self.engine = engine
         self.cv_acceleration_density = float(cv_acceleration_density)

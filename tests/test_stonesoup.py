@@ -109,6 +109,18 @@ def _variant(kind: str, workers: int, seed: int = 0):
                            measurement, workers=workers, particles=200, seed=seed)
 
 
+def test_the_default_workers_are_the_processors_this_job_may_run_on(monkeypatch):
+    """A job pinned to one core (taskset, a batch system's cgroup) filters in this process: the
+    default pool counted the machine's CPUs (os.cpu_count), so it started 8 workers on one core."""
+    monkeypatch.setattr("os.cpu_count", lambda: 8)
+    monkeypatch.setattr("os.sched_getaffinity", lambda pid: {0}, raising=False)
+    variant = _variant("kf", workers=None)
+    assert variant.workers_for(runs=100, scans=1000) == 1
+    monkeypatch.setattr("os.sched_getaffinity", lambda pid: {0, 1, 2}, raising=False)
+    assert variant.workers_for(runs=100, scans=1000) == 3
+    assert variant.workers_for(runs=2, scans=100_000) == 2          # never more than the runs
+
+
 def test_the_estimates_do_not_depend_on_the_workers_or_the_chunks():
     """Run r's result depends on run r alone: 1 or 2 worker processes, all runs or a chunk of them; a particle
     filter's draws are seeded per run (its index in the whole Monte Carlo), so it too."""

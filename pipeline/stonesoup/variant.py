@@ -32,7 +32,6 @@ measurement prediction.
 from __future__ import annotations
 
 import functools
-import os
 import pickle
 import time
 import zlib
@@ -41,7 +40,7 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
-from filters.base import MeasurementSeries, TrackEstimate
+from filters.base import MeasurementSeries, TrackEstimate, usable_processors
 from pipeline.stonesoup import require_stonesoup
 
 # the kinds a StoneSoupFilter may take (a variant takes the one of its measurement model)
@@ -172,14 +171,14 @@ class StoneSoupFilter:
                              {"nis": nis, "nis_dof": dof}, time.perf_counter() - started)
 
     def workers_for(self, runs: int, scans: int) -> int:
-        """The processes that filter ``runs`` runs of ``scans`` scans: ``workers`` if set; by default this
-        machine's CPUs, or none (this process) for a job under SERIAL_BELOW run-scans, which the workers'
+        """The processes that filter ``runs`` runs of ``scans`` scans: ``workers`` if set; by default the
+        processors this process may run on (``filters.base.usable_processors``), or none (this process) for a job under SERIAL_BELOW run-scans, which the workers'
         start-up would outlast. Never more than the runs."""
         if self.workers is not None:
             return max(1, min(self.workers, runs))
         if runs * scans < SERIAL_BELOW:
             return 1
-        return max(1, min(os.cpu_count() or 1, runs))
+        return max(1, min(usable_processors(), runs))   # the affinity mask: a pinned job gets its share
 
     def _prepare(self, m: MeasurementSeries) -> tuple["_Job", list["_Run"]]:
         """What every run shares (the job) and each run's arrays."""
