@@ -99,14 +99,31 @@ def _fail(ctx: RunContext, cfg: DictConfig, message: str, detail: str | None) ->
         log.error("could not record the failure in %s: %s", ctx.run_dir, describe_exception(exc)[0])
 
 
+SWEEP_FLAGS = ("-m", "--multirun")
+
+
+def is_sweep(argv: list[str]) -> bool:
+    """Whether this command line asks Hydra for a multirun (``-m``, ``--multirun`` or
+    ``hydra.mode=MULTIRUN``): only a sweep instantiates a launcher."""
+    return any(a in SWEEP_FLAGS or a.replace("+", "", 1) in ("hydra.mode=MULTIRUN", "hydra.mode=multirun")
+               for a in argv)
+
+
 def register_isolated_launcher() -> None:
     """Make ``hydra/launcher=isolated`` (hydra_plugins/isolated_launcher) work however the package is
     installed. Hydra 1.3 finds plugins by walking the ``hydra_plugins`` namespace, and a setuptools>=64
     editable install (``pip install -e .``) serves it through an import hook that cannot be walked
-    (hydra issue #2359): the module imports, but Hydra never sees the launcher or its config node."""
+    (hydra issue #2359): the module imports, but Hydra never sees the launcher or its config node.
+
+    The config node (a dataclass, nothing imported) is registered for every command, so a config that
+    names the launcher composes; the launcher itself only for a sweep, so a single job never depends
+    on what only sweeps use."""
+    from hydra_plugins.isolated_launcher import config  # noqa: F401  (registers the node hydra/launcher/isolated)
+    if not is_sweep(sys.argv[1:]):
+        return
     from hydra.core.plugins import Plugins
     plugins = Plugins.instance()          # scans first: a launcher it found is the class registered below
-    from hydra_plugins.isolated_launcher import config, launcher  # noqa: F401  (config: registers the node)
+    from hydra_plugins.isolated_launcher import launcher
     plugins.register(launcher.IsolatedLauncher)
 
 
@@ -115,9 +132,7 @@ def entry() -> None:
     1 when it refuses the command line or the config (an unknown key, a missing experiment) before
     any callback ran; our own refusals exit 2; a bug keeps Python's 1 with its traceback."""
     from pipeline import folders
-    from pipeline.compose_once import compose_each_job_once
     register_isolated_launcher()
-    compose_each_job_once()
     try:
         main()
     except SystemExit as exc:

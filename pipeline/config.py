@@ -327,7 +327,7 @@ def check_targets(cfg: DictConfig) -> None:
     instantiate() calls whatever a ``_target_`` names: ``builtins.open`` truncated a file, ``shutil.copyfile``
     wrote one, and even the type check imported a module (``this``) just to read its signature. A
     config is data: it may only pick among the components that implement the project's contracts."""
-    from hydra._internal.utils import _locate
+    from hydra.utils import get_object      # resolves a dotted name as instantiate() does
 
     allowed = allowed_packages(cfg)
     listed = list(allowed[len(PROJECT_PACKAGES) + len(COMPONENT_PACKAGES):])
@@ -340,7 +340,7 @@ def check_targets(cfg: DictConfig) -> None:
         if not _inside(target, allowed):
             raise ConfigError(f"{key}: {target!r} is not allowed (nothing was imported); {fix}.")
         try:
-            obj = _locate(target)
+            obj = get_object(target)
         except Exception as exc:  # noqa: BLE001 - any import failure: the user's name is wrong
             top = target.split(".", 1)[0]
             cause = exc.__cause__ if isinstance(exc.__cause__, ImportError) else exc
@@ -498,9 +498,9 @@ def check_types(node: Any, key: str) -> None:
 
 def _signature(target: Any, key: str) -> tuple[dict[str, inspect.Parameter] | None, dict[str, Any]]:
     """The parameters and resolved annotations of a target, following ``**kwargs`` up a class's MRO."""
-    from hydra._internal.utils import _locate
+    from hydra.utils import get_object      # resolves a dotted name as instantiate() does
     try:
-        obj = _locate(str(target))
+        obj = get_object(str(target))
     except Exception as exc:
         raise ConfigError(f"{key}._target_: {target!r} cannot be imported ({type(exc).__name__}); it must name a "
                           f"class or function, e.g. filters.imm.FSIMM.") from None

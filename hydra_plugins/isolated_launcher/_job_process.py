@@ -4,7 +4,7 @@ plugin scan, which imports every other module under hydra_plugins at each start,
 
 A fresh interpreter, not a fork of the launcher: a fork would copy the parent's thread pools
 (polars, BLAS) in whatever state they were, which can deadlock the child. The job's arguments
-travel as cloudpickle bytes (joblib's vendored copy), as they do to joblib's loky workers.
+travel as cloudpickle bytes, as they do to joblib's loky workers.
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.core.singleton import Singleton
 from hydra.core.utils import JobReturn, JobStatus, run_job, setup_globals
 from hydra.types import HydraContext, TaskFunction
-from joblib.externals import cloudpickle
+import cloudpickle
 from omegaconf import DictConfig, open_dict
 
 

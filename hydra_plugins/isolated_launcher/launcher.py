@@ -31,8 +31,6 @@ from hydra.core.singleton import Singleton
 from hydra.core.utils import JobReturn, JobStatus, configure_log, filter_overrides, setup_globals
 from hydra.plugins.launcher import Launcher
 from hydra.types import HydraContext, TaskFunction
-from joblib import cpu_count
-from joblib.externals import cloudpickle
 from omegaconf import DictConfig, OmegaConf, open_dict, read_write
 
 log = logging.getLogger(__name__)
@@ -76,10 +74,16 @@ class ProcessOutcome:
 
 
 def jobs_at_a_time(n_jobs: int) -> int:
-    """joblib's convention: n_jobs > 0 is that many; -1 is one per CPU, -2 all but one, ..."""
+    """joblib's convention: n_jobs > 0 is that many; -1 is one per CPU, -2 all but one, ...
+
+    The CPUs are joblib's count (it reads the process's affinity and a container's CPU quota), the
+    one the joblib launcher uses, so ``n_jobs=-1`` means the same under both launchers."""
     if n_jobs == 0:
         raise ValueError("hydra.launcher.n_jobs: 0 runs nothing; give a positive count or -1 (one per CPU)")
-    return n_jobs if n_jobs > 0 else max(1, cpu_count() + 1 + n_jobs)
+    if n_jobs > 0:
+        return n_jobs
+    from joblib import cpu_count        # here, not at import: Hydra's plugin scan imports this module in every job
+    return max(1, cpu_count() + 1 + n_jobs)
 
 
 def describe_death(outcome: ProcessOutcome) -> str:
@@ -174,7 +178,9 @@ class IsolatedLauncher(Launcher):
         for position, overrides in enumerate(job_overrides):
             log.info(f"\t#{initial_job_idx + position} : {' '.join(filter_overrides(overrides))}")
 
-        # pickled once for all jobs; each job's input adds its num and overrides
+        # pickled once for all jobs; each job's input adds its num and overrides. cloudpickle, not
+        # pickle: the task function is the app's decorated main, which pickle cannot send by value
+        import cloudpickle       # here, not at import: Hydra's plugin scan imports this module in every job
         shared = cloudpickle.dumps((self.hydra_context, self.config, self.task_function, Singleton.get_state()))
         returns: list[JobReturn | None] = [None] * len(job_overrides)
         waiting = deque(range(len(job_overrides)))
@@ -204,6 +210,7 @@ class IsolatedLauncher(Launcher):
     def _job_return(self, job_num: int, overrides: Sequence[str], outcome: ProcessOutcome) -> JobReturn:
         if outcome.result is not None:
             try:
+                import cloudpickle
                 job_return = cloudpickle.loads(outcome.result)
                 assert isinstance(job_return, JobReturn)
                 return job_return
