@@ -40,9 +40,9 @@ numba kernel is loaded (or compiled) once before. One BLAS thread (OPENBLAS_NUM_
 Checks (exit 1 when one fails; no timing assertion): the same likelihood (the start cloud's weights
 for scan 1's bearings, ours and Stone Soup's, agree to float32 rounding: 1e-4 of the largest); the
 same filter (``--runs`` runs through each, ours with numba: the position RMSE over each run, scans
-1..360; the paired mean difference of the runs' RMSEs, Stone Soup - ours, within 3 standard errors
-over the runs plus 2 % of the RMSE: the two use different random numbers, so they agree only within
-Monte Carlo noise).
+1..360; the paired mean difference of the runs' RMSEs, Stone Soup - ours, within 3 sigma's coverage
+of its standard error over the runs (Student's t with runs - 1 degrees of freedom) plus 2 % of the
+RMSE: the two use different random numbers, so they agree only within Monte Carlo noise).
 """
 
 from __future__ import annotations
@@ -116,7 +116,8 @@ class StoneSoupSIR:
 
     def __init__(self, cfg, reports) -> None:
         from stonesoup.base import Property
-        from stonesoup.models.measurement.nonlinear import _AngleNonLinearGaussianMeasurement
+        from scipy.stats import multivariate_normal
+        from stonesoup.models.measurement.nonlinear import NonLinearGaussianMeasurement
         from stonesoup.models.transition.linear import LinearGaussianTimeInvariantTransitionModel
         from stonesoup.predictor.particle import ParticlePredictor
         from stonesoup.resampler import Resampler
@@ -127,9 +128,11 @@ class StoneSoupSIR:
 
         from filters.particle import BUOYS, _ModelParameters, cv_transition
 
-        class BuoyBearings(_AngleNonLinearGaussianMeasurement):
+        class BuoyBearings(NonLinearGaussianMeasurement):
             """Study 004's 8 bearings (seed eq 9): the target from each buoy, each buoy from the
-            observer, atan2(dx, dy) from north, for every particle at once."""
+            observer, atan2(dx, dy) from north, for every particle at once. Typed as Stone Soup's
+            ``Bearing`` and wrapped to (-pi, pi] in the likelihood, as its own angle models do (their
+            shared base class is private, so the three methods are written here)."""
 
             observer: np.ndarray = Property(doc="the fixed observer (east, north) [m]")
 
@@ -137,7 +140,7 @@ class StoneSoupSIR:
             def ndim_meas(self) -> int:
                 return 2 * BUOYS
 
-            def _function(self, state, noise=False, **kwargs):
+            def _bearings(self, state, noise=False, **kwargs):
                 if isinstance(noise, bool) or noise is None:
                     noise = self.rvs(num_samples=state.state_vector.shape[1], **kwargs) if noise else 0
                 x = np.asarray(state.state_vector, dtype=float)                       # (20, N)
@@ -151,6 +154,19 @@ class StoneSoupSIR:
             @staticmethod
             def _typed_vector():
                 return np.array([[Bearing(0.0)]] * (2 * BUOYS))
+
+            def function(self, state, noise=False, **kwargs):
+                return self._typed_vector() + self._bearings(state, noise, **kwargs)
+
+            def rvs(self, num_samples=1, **kwargs):
+                return self._typed_vector() + super().rvs(num_samples, **kwargs)
+
+            def logpdf(self, state1, state2, **kwargs):
+                residual = state1.state_vector.astype(np.float64) - self._bearings(state2, **kwargs)
+                for row in range(residual.shape[0]):        # each a bearing difference, wrapped
+                    residual[row, :] = Bearing.mod_angle(residual[row, :])
+                likelihood = np.atleast_1d(multivariate_normal.logpdf(residual.T, cov=self.covar(**kwargs)))
+                return likelihood[0] if len(likelihood) == 1 else likelihood
 
         class KeepWeighted(Resampler):
             """SystematicResampler, keeping the weighted cloud it resamples (the estimate's)."""
@@ -303,12 +319,16 @@ def main(argv=None) -> int:
         theirs[r] = position_rmse(states, true[r])
     difference = theirs - mine
     mean, se = float(difference.mean()), float(difference.std(ddof=1) / np.sqrt(args.runs))
-    tolerance = 3 * se + 0.02 * float(np.mean(mine))
+    # 3 sigma's coverage (99.73 %) from Student's t with runs - 1 degrees of freedom: with a few runs the
+    # standard error is itself uncertain, and a normal 3 SE failed a 4-run check on a fair stream
+    from scipy.stats import t as student_t
+    multiplier = float(student_t.ppf(1 - 0.0027 / 2, args.runs - 1))
+    tolerance = multiplier * se + 0.02 * float(np.mean(mine))
     ok = bool(abs(mean) <= tolerance) and weights < 1e-4
     print(f"accuracy over {args.runs} runs ({time.perf_counter() - started:.0f} s): position RMSE per run, mean "
           f"{mine.mean():.1f} m ours, {theirs.mean():.1f} m Stone Soup (medians {np.median(mine):.1f}, "
           f"{np.median(theirs):.1f}); paired difference {mean:+.1f} m, standard error {se:.1f} m "
-          f"(|difference| <= 3 SE + 2 % = {tolerance:.1f} m: {'OK' if ok else 'FAILED'})")
+          f"(|difference| <= {multiplier:.2f} SE + 2 % = {tolerance:.1f} m: {'OK' if ok else 'FAILED'})")
     return 0 if ok else 1
 
 

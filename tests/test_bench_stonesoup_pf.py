@@ -11,6 +11,6 @@ from benchmarks import bench_stonesoup_pf  # noqa: E402
 
 
 def test_the_benchmark_runs_and_its_checks_pass(capsys):
-    assert bench_stonesoup_pf.main(["--particles", "300", "--repeats", "1", "--runs", "4"]) == 0
+    assert bench_stonesoup_pf.main(["--particles", "300", "--repeats", "1", "--runs", "8"]) == 0
     out = capsys.readouterr().out
     assert "Stone Soup / ours, numba" in out and "OK" in out
