@@ -28,6 +28,7 @@ from omegaconf import DictConfig, OmegaConf
 from pipeline import schemas
 from pipeline.contract import RecordingInputs, Study
 from pipeline.config import build, check_objective, compute_reference, flatten, selected_variants, validate
+from pipeline.environment import environment, table_metadata as environment_metadata
 from pipeline.errors import ConfigError
 from pipeline.estimates import StoredEstimates, recorded_runs
 from pipeline.evaluate import (Window, group_reached, metrics_frame, models_per_step, reference_rows, summary_row,
@@ -96,6 +97,8 @@ def write_status(ctx: RunContext, experiment: str, status: str, *, config_hash: 
         "peak_rss_mb": round(peak_rss_mb if peak_rss_mb is not None else own_peak_rss_mb(), 1),
         # who runs it: a reader tells a job still running from one whose process was killed (pipeline.process)
         "process": process_identity(),
+        # the software it ran with: the lock's hash, the direct dependencies' versions and any that differ
+        "environment": environment(),
     }
     if detail:
         record["traceback"] = detail
@@ -361,7 +364,8 @@ def run_experiment(cfg: DictConfig, ctx: RunContext) -> RunOutcome:
     log.info("memory: about %.2f GB at the peak (estimated; pipeline.memory)", memory.peak / 2**30)
     study, sensor, estimators = prepared.study, prepared.sensor, prepared.estimators
     cache = StageCache(ctx.artifacts / "cache", enabled=bool(cfg.cache.enabled))
-    provenance = {"mtt.experiment": experiment, "mtt.config_hash": config_hash, "mtt.package_version": package_version()}
+    provenance = {"mtt.experiment": experiment, "mtt.config_hash": config_hash, "mtt.package_version": package_version(),
+                  **environment_metadata()}
     # a bar on a terminal, plain lines in a pipe or a sweep, nothing for a stage under 2 s
     progress = Reporter(choose_mode(sys.stderr, multirun=ctx.job_num is not None))
     stages = _Stages(cache, ctx, provenance, link=cfg.cache.get("publish", "copy") == "link", progress=progress)

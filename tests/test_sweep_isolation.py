@@ -13,12 +13,14 @@ import sys
 from pathlib import Path
 
 import polars as pl
+import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 LAUNCHER = "isolated"
 KILLED_JOB = 1            # the one job of three whose filter SIGKILLs its own process
 
 
+@pytest.mark.smoke          # the isolated launcher sends each job with cloudpickle: what joblib 1.6 moved
 def test_a_killed_job_fails_alone_and_the_sweep_summary_lists_it(tmp_path):
     env = {**os.environ, "HYDRA_FULL_ERROR": "0", "PYTHONPATH": str(ROOT)}
     proc = subprocess.run(
