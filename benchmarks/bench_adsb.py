@@ -5,14 +5,14 @@ flight, each with both engines (filtering only).
 
 Inputs are built as the experiment builds them: the Hydra config ``experiment=<experiment>``
 composed from ``conf/``, scenario / sensors / study / filters instantiated with
-``pipeline.config.build``, then ``truth = scenario.generate(R, seed)``,
+``pipeline.run.config.build``, then ``truth = scenario.generate(R, seed)``,
 ``detections = sensor.measure(truth, seed)``, ``series = study.track_input(...)`` (the radar's
 range/azimuth/elevation, or 2-D positions for the ``*_horizontal`` experiments).
 
 What is timed: ``compute_seconds`` of one ``.run`` over all runs (the filter's own clock: the
 measurement conversion, the start, the scans and the output layout; numba's load happens before
 it), the median of ``--repeat`` calls, with the compiled loop (``engine: numba``, the default:
-filters/kalman_kernel.py) and the numpy scans (``engine: numpy``, the
+filters/tracker/kernel.py) and the numpy scans (``engine: numpy``, the
 reference). It also prints the largest difference between the two engines' states, covariances
 and NIS, relative to each output's largest entry. No timing assertions.
 """
@@ -34,7 +34,7 @@ if str(ROOT) not in sys.path:
 from hydra import compose, initialize_config_dir  # noqa: E402
 from omegaconf import OmegaConf  # noqa: E402
 
-from pipeline.config import build  # noqa: E402
+from pipeline.run.config import build  # noqa: E402
 
 VARIANTS = ("kf_cv", "kf_ca", "kf_singer", "imm_cv_ct")
 

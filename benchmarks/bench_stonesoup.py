@@ -49,7 +49,7 @@ if str(ROOT) not in sys.path:
 from omegaconf import OmegaConf  # noqa: E402
 
 from filters.base import MeasurementSeries  # noqa: E402
-from pipeline.config import build  # noqa: E402
+from pipeline.run.config import build  # noqa: E402
 from pipeline.studies.ao_vsimm.sensor import PositionSensor  # noqa: E402
 
 REL_TOL = 1e-9

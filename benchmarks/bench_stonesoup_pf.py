@@ -77,7 +77,7 @@ KNOWN_BUOYS = ["scenario.buoy_sigma=0", "target_model.buoy_sigma=0"]
 def reports_for(runs: int, seed: int, particles: int, buoys: str, target_sigma: float):
     from hydra import compose, initialize_config_dir
 
-    from pipeline.config import build
+    from pipeline.run.config import build
 
     with initialize_config_dir(version_base="1.3", config_dir=str(ROOT / "conf")):
         cfg = compose("config", overrides=["experiment=sonobuoy_case1", f"mc.runs={runs}",
@@ -126,7 +126,7 @@ class StoneSoupSIR:
         from stonesoup.types.array import StateVectors
         from stonesoup.updater.particle import ParticleUpdater
 
-        from filters.particle import BUOYS, _ModelParameters, cv_transition
+        from filters.particle.reference import BUOYS, _ModelParameters, cv_transition
 
         class BuoyBearings(NonLinearGaussianMeasurement):
             """Study 004's 8 bearings (seed eq 9): the target from each buoy, each buoy from the

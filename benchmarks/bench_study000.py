@@ -4,7 +4,7 @@
 
 The spec's target: B (decoupled LOS filter, scalar per-axis MIE) costs at most half of A (coupled
 inertial filter, 3x3 MIE). Inputs are built from the experiment's own configs. Best of --repeat.
-Each filter is timed with both engines, the compiled loop (``engine: numba``, filters/mie_kernel.py,
+Each filter is timed with both engines, the compiled loop (``engine: numba``, filters/input_estimation/kernel.py,
 the default) and the numpy scans (``engine: numpy``); "% of A" compares within one engine: a
 comparison of the algorithms needs one implementation technique.
 """
@@ -23,7 +23,7 @@ if str(ROOT) not in sys.path:
 from hydra.utils import instantiate  # noqa: E402
 from omegaconf import OmegaConf  # noqa: E402
 
-from pipeline.track import measurement_series  # noqa: E402
+from pipeline.studies.single_target import measurement_series  # noqa: E402
 
 
 def main() -> int:

@@ -11,7 +11,7 @@ estimators' parameters come from ``conf/filter/{fsimm,vsimm,ao_vsimm}.yaml``.
 What is timed (``time.perf_counter``; filtering only, no data generation):
 
 - our batched estimators, all ``--runs`` runs in one ``.run`` call, best of 3, each with its
-  configured engine (the compiled cycle, ``filters/imm_kernel.py``) and with ``engine="numpy"``
+  configured engine (the compiled cycle, ``filters/imm/kernel.py``) and with ``engine="numpy"``
   (the numpy cycle, the reference), the two timed in turn; the compiled engine's first call, which
   loads the kernel from numba's cache or compiles it, is timed apart;
 - the reference loop FSIMM (``benchmarks/reference_imm.py``), one run at a time, over the first

@@ -6,16 +6,16 @@ Run from the repository root:
 
 Inputs are built exactly as the experiment builds them: the Hydra config ``experiment=async_bias``
 composed from ``conf/``, scenario / sensors / study / filters instantiated with
-``pipeline.config.build``, then ``truth = scenario.generate(R, seed)``,
+``pipeline.run.config.build``, then ``truth = scenario.generate(R, seed)``,
 ``detections = sensor.measure(truth, seed)``, ``reports = study.track_input(truth, detections,
 sensor, seed)`` (32 targets, 200 s, 400 reports of two radars).
 
 What is timed (``time.perf_counter``; estimation only, no data generation):
 
-- the batched variants of ``filters/bias.py`` as configured (``filters.local``, ``.proposed``,
+- the batched variants of ``filters/bias/reference.py`` as configured (``filters.local``, ``.proposed``,
   ``.exx``: output targets 1 and 32), all ``--runs`` runs in one ``.run`` call, median of
   ``--repeat`` calls, each with both engines: the compiled local-filter steps (``engine: numba``,
-  the default; filters/bias_kernel.py, loaded before the clock) and the numpy steps
+  the default; filters/bias/kernel.py, loaded before the clock) and the numpy steps
   (``engine: numpy``, the reference);
 - the reference loop of the proposed method (``benchmarks/reference_bias.py``: one run, one
   report, one target at a time, covariance-form recursion) on the first ``--loop-runs`` runs,
@@ -58,7 +58,7 @@ from omegaconf import OmegaConf  # noqa: E402
 
 from benchmarks.reference_bias import reference_pseudo_bias  # noqa: E402
 from filters.bias import RadarReports, TrackStart  # noqa: E402
-from pipeline.config import build  # noqa: E402
+from pipeline.run.config import build  # noqa: E402
 
 BIAS_TOL = 1e-8      # max |d bias| / prior std
 TRACK_TOL = 1e-8     # max |d compensated track| [m]
@@ -74,7 +74,7 @@ def compose_config(*overrides: str):
 
 
 def build_inputs(cfg, runs: int, seed: int):
-    """(estimators by key, reports) exactly as pipeline.runner builds them."""
+    """(estimators by key, reports) exactly as pipeline.run.runner builds them."""
     study = build(cfg.study, "study")
     scenario = build(cfg.scenario, "scenario")
     sensor = build(cfg.sensors, "sensors")
@@ -113,7 +113,7 @@ def main(argv: list[str] | None = None) -> int:
           f"({reports.time[0]:g}..{reports.time[-1]:g} s), {runs} runs, seed {args.seed}")
 
     # ---- batched variants ----------------------------------------------------------------------
-    from filters import bias_kernel
+    from filters.bias import kernel as bias_kernel
     bias_kernel.warm_up()                          # numba's start and the kernels' load before any clock
     rows = []
     results = {}

@@ -2,7 +2,7 @@
 
     python benchmarks/bench_study003.py --runs 100
 
-Each tracker is run with the compiled scan loop (``engine: numba``, filters/mgekf_kernel.py) and the
+Each tracker is run with the compiled scan loop (``engine: numba``, filters/mgekf/kernel.py) and the
 numpy scans (``engine: numpy``, the reference), alternating, best of --repeat, on the experiment's
 own scenario and sensor (100 runs x 10 001 scans at the spec's size). Printed with the engines'
 agreement: max |compiled - numpy| over each state's RMS. Seconds are ``compute_seconds``: the
@@ -24,7 +24,7 @@ if str(ROOT) not in sys.path:
 
 from hydra import compose, initialize_config_dir  # noqa: E402
 
-from pipeline.runner import prepare  # noqa: E402
+from pipeline.run.runner import prepare  # noqa: E402
 
 
 def main() -> int:

@@ -38,7 +38,7 @@ EXPERIMENTS = {"2": "sonobuoy_case2", "1b": "sonobuoy_case1b"}
 def reports_for(case: str, runs: int, seed: int):
     from hydra import compose, initialize_config_dir
 
-    from pipeline.config import build
+    from pipeline.run.config import build
 
     with initialize_config_dir(version_base="1.3", config_dir=str(ROOT / "conf")):
         cfg = compose("config", overrides=[f"experiment={EXPERIMENTS[case]}", f"mc.runs={runs}"])
@@ -51,7 +51,7 @@ def reports_for(case: str, runs: int, seed: int):
 def make_filter(cfg, key: str, engine: str):
     """The experiment's filter ``key``; "sir_mm" where the experiment has none (case 1B) is its AMMPF
     made the bootstrap SIR-MM (as conf/filter/sir_mm.yaml)."""
-    from pipeline.config import build
+    from pipeline.run.config import build
 
     estimator = build(cfg.filters[key if key in cfg.filters else "ammpf"], f"filters.{key}")
     if key not in cfg.filters:

@@ -1,10 +1,10 @@
 """The "obvious way" pseudo-bias-measurement registration (seed 002, the paper's proposal): one run,
 one report, one target at a time, plain numpy. The executable specification.
 
-``filters/bias.py`` runs every Monte Carlo run and every target at once and keeps the bias least
+``filters/bias/reference.py`` runs every Monte Carlo run and every target at once and keeps the bias least
 squares in a prior-normalised information form. This module writes the same estimator the way
 the paper's equations read, so that the batched code can be checked against it and timed against
-it. It shares nothing with ``filters/bias.py`` except the input dataclass ``RadarReports``.
+it. It shares nothing with ``filters/bias/reference.py`` except the input dataclass ``RadarReports``.
 
 Conventions (spec 002, literature notes section 5):
 

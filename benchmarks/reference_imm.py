@@ -1,6 +1,6 @@
 """The "obvious way" FSIMM: one run, one model at a time, plain numpy. The executable specification.
 
-Nothing here is batched or clever. ``filters/imm.py`` filters every Monte Carlo run at once on a
+Nothing here is batched or clever. ``filters/imm/reference.py`` filters every Monte Carlo run at once on a
 padded model-slot axis with log-domain weights; this module writes the same estimator the way
 a textbook listing reads (Bar-Shalom, Li & Kirubarajan 2001, sec 11.6.6), so that the batched
 code can be checked against it and timed against it.

@@ -178,7 +178,7 @@ ENGINES = ("numba", "numpy")     # a filter with a compiled loop: numba (the def
 
 def checked_engine(engine: str, compiled: str) -> str:
     """``engine`` when it is one of ``ENGINES``; else a ValueError naming the value, what is allowed
-    and what the compiled engine runs (``compiled``, e.g. "the compiled scan loop, filters/mgekf_kernel.py")."""
+    and what the compiled engine runs (``compiled``, e.g. "the compiled scan loop, filters/mgekf/kernel.py")."""
     if engine not in ENGINES:
         raise ValueError(f"engine: {engine!r} must be one of {list(ENGINES)} (numba: {compiled}; numpy: the "
                          f"vectorised reference)")

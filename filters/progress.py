@@ -5,7 +5,7 @@ A filter (or any long loop) takes ``progress = current()`` on the thread that ca
 ``progress.advance(amount)`` as it goes, from any thread (a listener is thread-safe); a plain scan
 loop wraps its range in ``counted``. With nobody listening (a notebook, a test, a filter used on
 its own) ``current()`` is a no-op object. The pipeline listens while it runs a stage
-(``listening(listener)``; pipeline.progress shows a bar or log lines). Nothing flows back: telling
+(``listening(listener)``; pipeline.run.progress shows a bar or log lines). Nothing flows back: telling
 progress never changes what is computed.
 
 Its own module, not filters.base: a filter's code fingerprint (its stage cache key) covers the

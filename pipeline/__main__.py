@@ -4,7 +4,7 @@ A failed job prints one paragraph and exits non-zero in a single run; in a multi
 its error (status.json + a failed summary row) and lets the other jobs go on.
 
 With ``objective`` set (a parameter search, conf/tune/), the task function returns that summary
-value for the sweeper; a job without one (failed, or NaN) returns None (pipeline.objective says why).
+value for the sweeper; a job without one (failed, or NaN) returns None (pipeline.launch.objective says why).
 """
 
 from __future__ import annotations
@@ -20,9 +20,9 @@ from hydra.types import RunMode
 from omegaconf import DictConfig
 
 from pipeline.errors import PipelineError
-from pipeline.memory import exempt_survivors_from_collection, release_freed_memory
-from pipeline.objective import objective_value, trial_result
-from pipeline.runner import RunContext, describe_exception, job_context, record_job_failure, run_experiment
+from pipeline.run.memory import exempt_survivors_from_collection, release_freed_memory
+from pipeline.launch.objective import objective_value, trial_result
+from pipeline.run.runner import RunContext, describe_exception, job_context, record_job_failure, run_experiment
 
 log = logging.getLogger("pipeline")
 
@@ -131,7 +131,7 @@ def entry() -> None:
     """``python -m pipeline``: Hydra's app, with one exit code (2) for every input error. Hydra exits
     1 when it refuses the command line or the config (an unknown key, a missing experiment) before
     any callback ran; our own refusals exit 2; a bug keeps Python's 1 with its traceback."""
-    from pipeline import folders
+    from pipeline.launch import folders
     register_isolated_launcher()
     try:
         main()

@@ -1,30 +1,30 @@
 """What a study promises the runner: one abstract base, every hook listed here, none probed.
 
 A study is the glue between a scenario, a sensor and the filters of one experiment family. The
-runner (pipeline.runner) calls exactly these hooks, in this order:
+runner (pipeline.run.runner) calls exactly these hooks, in this order:
 
 1. ``check(scenario, sensor, estimators)``: cross-node consistency, before any stage; raise
    ``pipeline.errors.ConfigError`` naming the key.
 2. ``track_input(truth, detections, sensor, seed)``: the filters' view of the detections (a
    ``filters.base.MeasurementSeries``, or the study's own report type). Randomness here (a drawn
-   track start) comes from ``pipeline.seeding.run_generators(seed, <stage>, R)``.
+   track start) comes from ``pipeline.run.seeding.run_generators(seed, <stage>, R)``.
 3. per variant, ``estimate_to_frame(estimate, truth)`` and ``fault_flags(estimate, truth, checks)``:
    the track stage's table (named ``estimate_table``) and its ``fault`` column;
    ``estimate_from_frame(df, metadata)`` reads it back (a cached stage, and later stages, see
    exactly what the table holds).
 4. per variant as soon as its track stage ends, ``per_step_metrics(truth, estimate, sensor)`` and
    ``variant_summary(...)`` (its own summary rows beyond the per-window means); the estimate is then
-   let go (a job holds one at a time: pipeline.estimates). Once every variant is in,
+   let go (a job holds one at a time: pipeline.storage.estimates). Once every variant is in,
    ``extra_summary(...)`` for rows across variants. A Monte Carlo metric is returned per run
-   (``pipeline.uncertainty.RunValues``): its value over the runs per step, the summary's interval
+   (``pipeline.evaluation.uncertainty.RunValues``): its value over the runs per step, the summary's interval
    across runs, the paired comparisons and the per-run table all come from it; a plain (K,) array
    is a fixed value (a bound, a chi-square band) without an interval. Every metric name is in the
-   registry (``pipeline.metrics``: unit, aggregation, label, printed digits, dof); a study
+   registry (``pipeline.evaluation.metrics``: unit, aggregation, label, printed digits, dof); a study
    registers its own names when its module is imported.
 5. ``record(path, inputs)``: the Rerun recording of the runs in ``inputs.record_runs``.
 
 A study is a config node (``study: {_target_: ...}``); an experiment without one gets
-``pipeline.track.SingleTargetStudy``. Scenarios and sensors are plain config nodes with
+``pipeline.studies.single_target.SingleTargetStudy``. Scenarios and sensors are plain config nodes with
 ``generate(runs, seed) -> Truth`` and ``measure(truth, seed) -> Detections``; a sensor declares the
 measurement kind it ``produces`` and a filter the kinds it ``accepts`` (filters.base.MEASUREMENT_KINDS).
 """
@@ -42,14 +42,14 @@ if TYPE_CHECKING:
     import polars as pl
 
     from pipeline.data import Detections, Truth
-    from pipeline.faults import FaultChecks
+    from pipeline.evaluation.faults import FaultChecks
 
 
 class Scenario(Protocol):
     """A truth generator: every Monte Carlo run at once, run r's randomness from (seed, "scenario", r).
 
     A scenario that reads data files (a recorded flight) also offers ``data_fingerprint() -> str``, a
-    hash of those files, which joins the scenario stage's cache key (pipeline.stages): the config
+    hash of those files, which joins the scenario stage's cache key (pipeline.run.stages): the config
     names a file, the fingerprint says which bytes it held."""
 
     def generate(self, runs: int, seed: int) -> "Truth": ...
@@ -71,7 +71,7 @@ class RecordingInputs:
     truth: "Truth"
     detections: "Detections"
     estimates: Mapping[str, Any]              # variant key -> estimate, in display order: the recorded
-    #                                           runs' rows only (pipeline.estimates.RecordedRuns; index by run)
+    #                                           runs' rows only (pipeline.storage.estimates.RecordedRuns; index by run)
     display_names: Mapping[str, str]
     metrics: "pl.DataFrame"
     record_runs: Sequence[int]
@@ -110,15 +110,15 @@ class Study(ABC):
         """The track stage's table (one row per run x step x object) and its metadata."""
 
     def estimate_from_frame(self, df: "pl.DataFrame", metadata: Mapping[str, str]) -> Any:
-        """The estimate back from its table (default: pipeline.schemas' TrackEstimate codec)."""
-        from pipeline.schemas import estimate_from_frame
+        """The estimate back from its table (default: pipeline.storage.schemas' TrackEstimate codec)."""
+        from pipeline.storage.schemas import estimate_from_frame
 
         return estimate_from_frame(df, metadata)
 
     def fault_flags(self, estimate: Any, truth: "Truth", checks: "FaultChecks") -> np.ndarray:
-        """(R, K) uint8 bit masks of pipeline.faults per run and step. Default: the estimate's state and
+        """(R, K) uint8 bit masks of pipeline.evaluation.faults per run and step. Default: the estimate's state and
         covariance alone (no comparison with the truth, so no NEES test)."""
-        from pipeline.faults import fault_flags
+        from pipeline.evaluation.faults import fault_flags
 
         if not (hasattr(estimate, "state") and hasattr(estimate, "covariance")):
             raise TypeError(f"{type(self).__name__} returns {type(estimate).__name__} estimates without state and "
@@ -133,8 +133,8 @@ class Study(ABC):
 
     def variant_summary(self, truth: "Truth", key: str, display: str, estimate: Any, runs: int, sensor: Any,
                         metrics: Mapping[str, Any]) -> list[dict]:
-        """One variant's summary rows beyond the per-window means (``pipeline.evaluate.summary_row``;
-        with a ``statistic``, a ``pipeline.uncertainty.WindowStatistic``, the row gets its interval and
+        """One variant's summary rows beyond the per-window means (``pipeline.evaluation.evaluate.summary_row``;
+        with a ``statistic``, a ``pipeline.evaluation.uncertainty.WindowStatistic``, the row gets its interval and
         paired comparison), computed while its ``estimate`` is in memory; ``metrics``: its
         ``per_step_metrics``. Default none."""
         return []
@@ -145,7 +145,7 @@ class Study(ABC):
         """Summary rows across variants (e.g. a ratio to the ``reference`` variant), rows as in
         ``variant_summary``, after every variant's; ``per_variant`` holds each variant's per-step
         values. ``estimates`` reads each variant's table again when asked and keeps only the last one
-        read (``pipeline.estimates.StoredEstimates``): go through them once, or keep what these rows
+        read (``pipeline.storage.estimates.StoredEstimates``): go through them once, or keep what these rows
         need from ``variant_summary`` instead of reading them again. Default none."""
         return []
 

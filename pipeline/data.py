@@ -1,7 +1,7 @@
 """In-memory stage outputs: small frozen dataclasses of numpy arrays batched over runs.
 
 Shapes: R runs, K scans, T targets, D detection slots per scan, n state size, m measurement size.
-These are what stages pass to each other; ``pipeline.schemas`` turns them into Parquet tables
+These are what stages pass to each other; ``pipeline.storage.schemas`` turns them into Parquet tables
 (one row per run x step x object) and back.
 """
 

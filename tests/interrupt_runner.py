@@ -37,7 +37,7 @@ def matches(target: Path, name: str) -> bool:
 def install(mode: str, marker: str) -> None:
     import polars as pl
 
-    from pipeline import store
+    from pipeline.storage import store
 
     if mode == "rrd":
         mode = "parquet-half:recording.rrd"

@@ -7,8 +7,8 @@ from __future__ import annotations
 
 import pytest
 
-from pipeline.blueprint_parts import title_chars
-from pipeline.colours import variant_colour
+from pipeline.views.blueprints import title_chars
+from pipeline.views.colours import variant_colour
 from tests.rrd_reading import blueprint_views, capture_blueprint, legend_visible, up_to_now
 
 @pytest.fixture(scope="module")

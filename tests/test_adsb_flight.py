@@ -15,7 +15,7 @@ import pytest
 from omegaconf import OmegaConf
 
 from filters.smoothing import smooth_constant_acceleration
-from pipeline.config import build
+from pipeline.run.config import build
 from pipeline.errors import ConfigError
 from pipeline.studies.adsb.flight import (CLIMB_DESCENT, MANEUVER_NAMES, STATE_NAMES, TURN, build_flight,
                                           geodetic_to_enu)

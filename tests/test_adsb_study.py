@@ -29,7 +29,7 @@ def test_every_flight_runs_and_the_filters_beat_the_raw_radar(tmp_path, experime
     truth = pl.read_parquet(ctx.run_dir / "truth.parquet")
     detections = pl.read_parquet(ctx.run_dir / "detections.parquet")
     # the raw radar's position error, converted to Cartesian (study 000's sensor at the ENU origin)
-    from pipeline.studies.mie_los.sensor import cartesian
+    from pipeline.sensors import cartesian
     z = np.stack(detections.sort("run", "step")["z"].to_numpy())
     x = np.stack(truth.sort("run", "step")["x"].to_numpy())[:, :3]
     raw = float(np.sqrt(np.mean(np.sum((cartesian(z) - x) ** 2, axis=-1))))       # one detection per scan
@@ -95,7 +95,7 @@ def test_study_001s_imms_track_a_real_flight_on_the_horizontal_plane(tmp_path):
     assert models["ao_vsimm"] < models["fsimm"] == 13.0
 
     # the report: its target passes, and every finding says something (a class with no scans says so)
-    from pipeline.report import write_run_report
+    from pipeline.results.report import write_run_report
     report = write_run_report(ctx.run_dir)
     assert [t.verdict for t in report.targets] == ["PASS"]
     text = report.path.read_text()

@@ -1,5 +1,5 @@
-"""Study 002's compiled local-filter steps (filters/bias_kernel.py, ``engine="numba"``) against the
-numpy steps of filters/bias.py, their reference: the update bit for bit, the move to rounding, and
+"""Study 002's compiled local-filter steps (filters/bias/kernel.py, ``engine="numba"``) against the
+numpy steps of filters/bias/reference.py, their reference: the update bit for bit, the move to rounding, and
 whole registrations of every method to rounding, a run filtered alone as in the batch."""
 
 from __future__ import annotations

@@ -24,7 +24,7 @@ from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
 from benchmarks.reference_bias import reference_pseudo_bias
-from pipeline.config import build
+from pipeline.run.config import build
 from tests.conftest import CONF
 
 RUNS, SEED = 2, 1

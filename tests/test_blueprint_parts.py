@@ -1,10 +1,10 @@
-"""pipeline.blueprint_parts: the pieces that make the recordings read at a glance (issue 19)."""
+"""pipeline.views.blueprints: the pieces that make the recordings read at a glance (issue 19)."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from pipeline.blueprint_parts import (_key_positions, fit_title, fit_titles, path_segments, quiet_corner,
+from pipeline.views.blueprints import (_key_positions, fit_title, fit_titles, path_segments, quiet_corner,
                                       title_chars)
 
 

@@ -10,9 +10,9 @@ from hydra import compose, initialize_config_dir
 
 from filters.bounds import posterior_crlb
 from filters.kalman import kalman_filter
-from pipeline.config import build
+from pipeline.run.config import build
 from tests.conftest import CONF
-from pipeline.evaluate import resolved
+from pipeline.evaluation.evaluate import resolved
 
 
 def test_linear_gaussian_bound_is_the_kalman_covariance():
@@ -54,7 +54,7 @@ def test_sonar_bounds_shrink_when_active_and_the_trackers_sit_above_the_clairvoy
     assert np.nanmedian(ratio[1:]) > 1.0, np.nanmedian(ratio[1:])           # no estimator beats it
 
 
-# ---- the single-target studies' bounds (pipeline.bounds) ---------------------------------
+# ---- the single-target studies' bounds (pipeline.evaluation.bounds) ---------------------------------
 def test_study_001_known_input_bound_is_the_covariance_of_an_imm_of_identical_models():
     """Linear-Gaussian with a known input: the PCRLB is the mode-matched Kalman covariance; an IMM
     whose models are all the same is that filter, started the same way (two-point, scans 0-1)."""
@@ -82,7 +82,7 @@ def test_study_000_radar_information_is_the_polar_jacobian_information():
     """E[H' R_p^-1 H] with H the finite-difference Jacobian of (range, azimuth, elevation)."""
     from filters.coordinates import line_of_sight_angles
     from pipeline.data import Truth
-    from pipeline.studies.mie_los.sensor import Radar3D
+    from pipeline.sensors import Radar3D
     from pipeline.studies.mie_los.bound import RadarSingerBound
 
     radar = Radar3D(position=[100.0, -50.0, 10.0], range_std=10.0, azimuth_std=0.007, elevation_std=0.006)
@@ -102,7 +102,7 @@ def test_study_000_radar_information_is_the_polar_jacobian_information():
 def test_studies_001_and_000_report_rmse_over_the_bound(tmp_path):
     import polars as pl
 
-    from pipeline.runner import RunContext, run_experiment
+    from pipeline.run.runner import RunContext, run_experiment
 
     for experiment in ("ao_vsimm_s1", "mie_los"):
         overrides = [f"experiment={experiment}", "mc.runs=3", "record.enabled=false", f"paths.artifacts={tmp_path}"]

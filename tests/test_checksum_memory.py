@@ -12,11 +12,11 @@ import textwrap
 import numpy as np
 import polars as pl
 
-from pipeline import store
+from pipeline.storage import store
 
 
 def reference_digest(df: pl.DataFrame, metadata: dict[str, str]) -> str:
-    """The checksum written out from its definition (pipeline.store._ColumnHash), whole columns."""
+    """The checksum written out from its definition (pipeline.storage.store._ColumnHash), whole columns."""
     h = hashlib.sha256()
     for key in sorted(k for k in metadata if k.startswith("mtt.") and k != store.META_CHECKSUM):
         h.update(f"{key}\x1f{metadata[key]}\x1e".encode())
@@ -56,8 +56,8 @@ def test_a_column_hashed_in_slices_has_the_whole_columns_digest(monkeypatch):
 
 SCRIPT = textwrap.dedent("""
     import polars as pl
-    from pipeline.memory import own_peak_rss_mb
-    from pipeline.store import content_checksum
+    from pipeline.run.memory import own_peak_rss_mb
+    from pipeline.storage.store import content_checksum
 
     # 3M names of 30 characters, made by polars (no Python strings): ~90 MB of text
     df = pl.select(pl.int_range(0, 3_000_000).cast(pl.String).str.zfill(30).alias("name"))

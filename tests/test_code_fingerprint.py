@@ -1,4 +1,4 @@
-"""The stage cache cannot serve results of code that has changed (pipeline.fingerprint).
+"""The stage cache cannot serve results of code that has changed (pipeline.storage.fingerprint).
 
 Reported: a filter in the user's own package (``mytrack/cv.py``, named by ``_target_``) was
 edited to add 100 m to every state; the re-run logged ``reused cached ...`` and printed the old
@@ -19,7 +19,8 @@ from pathlib import Path
 import polars as pl
 import pytest
 
-from pipeline import fingerprint, store
+from pipeline.storage import fingerprint
+from pipeline.storage import keys, store
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -108,11 +109,11 @@ def test_editing_a_users_filter_package_recomputes_its_track_stage(tmp_path):
 
 
 def test_the_closure_follows_imports_the_old_list_missed():
-    """The scenarios and sensors import pipeline.seeding, checks and data; the filters' helpers."""
+    """The scenarios and sensors import pipeline.run.seeding, checks and data; the filters' helpers."""
     scenario = fingerprint.closure_modules(["pipeline.studies.sonar.scenario"])
-    assert {"pipeline.checks", "pipeline.data"} <= set(scenario)
-    sensor = fingerprint.closure_modules(["pipeline.studies.mie_los.sensor"])
-    assert "pipeline.seeding" in sensor
+    assert {"pipeline.run.checks", "pipeline.data"} <= set(scenario)
+    sensor = fingerprint.closure_modules(["pipeline.sensors"])
+    assert "pipeline.run.seeding" in sensor
     mie = fingerprint.closure_modules(["filters.input_estimation"])
     assert {"filters.kalman", "filters.coordinates", "filters.models", "filters.base"} <= set(mie)
     assert not any(m.startswith(("numpy", "scipy", "polars")) for m in mie)
@@ -132,7 +133,7 @@ def test_relative_imports_and_edits_change_the_fingerprint(tmp_path, monkeypatch
 def test_fingerprinting_imports_nothing_a_function_imports_lazily(tmp_path, monkeypatch):
     """A module's ``from pkg.module import name`` inside a function is followed (module's source is
     hashed and its edits change the key) without importing the module: the stage key of a job
-    that never calls the function must not pay its imports (pipeline.kernels would bring numba)."""
+    that never calls the function must not pay its imports (pipeline.evaluation.kernels would bring numba)."""
     package = tmp_path / "lazyuser"
     package.mkdir()
     (package / "__init__.py").write_text("")
@@ -150,11 +151,11 @@ def test_fingerprinting_imports_nothing_a_function_imports_lazily(tmp_path, monk
 def test_a_stage_key_covers_every_target_in_its_config_and_the_library_versions(monkeypatch):
     node = {"_target_": "filters.imm.FSIMM", "models": {"_target_": "filters.models.AccelerationModelSet.from_config"}}
     assert fingerprint.producers(node) == ["filters.imm", "filters.models"]
-    key = store.stage_key("track", node, ("abc",))
-    assert key == store.stage_key("track", node, ("abc",))
+    key = keys.stage_key("track", node, ("abc",))
+    assert key == keys.stage_key("track", node, ("abc",))
     real = fingerprint._version_of
     monkeypatch.setattr(fingerprint, "_version_of", lambda top: "numpy==0.0" if top == "numpy" else real(top))
-    assert store.stage_key("track", node, ("abc",)) != key      # another numpy: recompute
+    assert keys.stage_key("track", node, ("abc",)) != key      # another numpy: recompute
 
 
 def _kept_record(module_file: Path) -> Path:
@@ -259,7 +260,7 @@ def test_a_compiled_kernel_module_imports_nothing_of_the_project():
     module kept running the old code after that module was edited (found when kalman_kernel's
     positive-definite check reached the CV/CT IMM loop, then in its own module, only after its
     cache was cleared), while the stage key, which follows the imports, recomputed with it."""
-    kernels = sorted((ROOT / "filters").glob("*_kernel.py")) + [ROOT / "pipeline" / "kernels.py"]
+    kernels = sorted((ROOT / "filters").glob("*/kernel.py")) + [ROOT / "pipeline" / "evaluation" / "kernels.py"]
     assert len(kernels) >= 7
     for path in kernels:
         for node in ast.walk(ast.parse(path.read_text())):

@@ -1,4 +1,4 @@
-"""pipeline.colours: one look per variant everywhere (issue 19: FSIMM was blue in the viewer and
+"""pipeline.views.colours: one look per variant everywhere (issue 19: FSIMM was blue in the viewer and
 orange in the report). The recording, the report figures and the sweep figures take a variant's
 colour from its place in the run's variant order; where curves coincide they differ in width
 (Rerun and matplotlib: the first key in path order widest, drawn first) and dash / marker."""
@@ -9,7 +9,7 @@ import numpy as np
 import polars as pl
 import pytest
 
-from pipeline.colours import (MODE_COLOURS, OTHER_COLOURS, figure_styles, match_mode, match_variant, mpl, rerun_widths,
+from pipeline.views.colours import (MODE_COLOURS, OTHER_COLOURS, figure_styles, match_mode, match_variant, mpl, rerun_widths,
                               variant_colour, variant_styles)
 
 # the run's order (the experiment's variant list), deliberately not alphabetical
@@ -31,7 +31,7 @@ def _drawn_lines(monkeypatch, draw) -> dict[str, object]:
 
 
 def test_report_figure_colours_are_the_recording_colours(monkeypatch, tmp_path):
-    from pipeline.report import FigureSpec, draw_figure
+    from pipeline.results.report import FigureSpec, draw_figure
 
     t = np.arange(5.0)
     # the query orders by name (AO-VSIMM first): the colours must still follow the run's order
@@ -53,7 +53,7 @@ def test_report_figure_colours_are_the_recording_colours(monkeypatch, tmp_path):
 def test_the_recording_uses_the_same_colour_and_width_per_variant(tmp_path):
     import rerun as rr
 
-    from pipeline.recording import log_metric_series, time_columns
+    from pipeline.views.recording import log_metric_series, time_columns
 
     series = {("position_rmse", key): (np.arange(3), np.arange(3.0), np.ones(3), name, variant_colour(i))
               for i, (key, name) in enumerate(VARIANTS)}
@@ -75,7 +75,7 @@ def test_the_recording_uses_the_same_colour_and_width_per_variant(tmp_path):
 
 
 def test_sweep_figure_colours_and_styles(monkeypatch, tmp_path):
-    from pipeline.sweep import draw_metric_figure
+    from pipeline.results.sweep import draw_metric_figure
 
     rows = [{"panel": "", "job": f"j{j}", "job_num": j, "x": float(j), "variant_key": key, "variant": name,
              "value": 1.0, "ci_low": None, "ci_high": None} for j in range(3) for key, name in VARIANTS]

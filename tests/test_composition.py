@@ -16,7 +16,7 @@ from hydra.utils import get_object
 from omegaconf import OmegaConf
 
 from filters.base import MEASUREMENT_KINDS, SERIES_KINDS, accepted_kinds, produced_kind
-from pipeline.config import filter_classes_in_conf, filter_nodes_in_conf
+from pipeline.run.config import filter_classes_in_conf, filter_nodes_in_conf
 from pipeline.errors import ConfigError
 from tests.test_pipeline import cli, run_in_process
 
@@ -71,7 +71,7 @@ def test_a_filter_that_declares_nothing_takes_a_measurement_series():
     # a Stone Soup variant takes its measurement model's kind (LinearGaussian: positions)
     (["experiment=mie_los", "+filter@filters.x=stonesoup_kf_cv"],
      "filters.x: pipeline.stonesoup.variant.StoneSoupFilter declares ['position_xy'] measurements, but this "
-     "experiment's sensor (pipeline.studies.mie_los.sensor.Radar3D) produces 'range_azimuth_elevation'"),
+     "experiment's sensor (pipeline.sensors.Radar3D) produces 'range_azimuth_elevation'"),
     (["experiment=ao_vsimm_s1", "+filter@filters.x=stonesoup_ekf_cv"],
      "Filters in conf/filter/ that take 'position_xy': ['ao_vsimm', 'fsimm', 'imm_cv_ct', 'kalman_ca', 'kalman_cv', "
      "'kalman_singer', 'kalman_sonar', 'stonesoup_kf_cv', 'stonesoup_pf_cv', 'vsimm', 'vsimm_new_old']"),
@@ -105,7 +105,7 @@ def test_on_the_command_line_the_refusal_is_one_paragraph(tmp_path):
 
 def test_the_shipped_filters_run_in_every_experiment_of_their_kind():
     """A filter that takes a kind runs with every sensor of that kind (composition is by kind, not by study)."""
-    from pipeline.config import check_measurement_kinds
+    from pipeline.run.config import check_measurement_kinds
     from tests.conftest import EXPERIMENTS, composed
     classes = filter_classes_in_conf()
     for experiment in EXPERIMENTS:

@@ -32,9 +32,9 @@ import numpy as np
 import polars as pl
 import pytest
 
-from pipeline import store
-from pipeline.schemas import META_TABLE, META_VERSION, SCHEMA_VERSION
-from pipeline.store import META_KEY, StageCache, publish
+from pipeline.storage import store
+from pipeline.storage.schemas import META_TABLE, META_VERSION, SCHEMA_VERSION
+from pipeline.storage.store import META_KEY, StageCache, publish
 
 ROOT = Path(__file__).resolve().parents[1]
 TABLE = "truth"
@@ -233,7 +233,7 @@ def test_a_hit_is_published_from_the_file_that_was_verified(tmp_path, monkeypatc
 def _hammer(root: str, worker: int, rounds: int, keys: int, barrier, results) -> None:
     """One job: every round, load each key (or compute and store it) and publish it, all workers at once."""
     try:
-        logging.getLogger("pipeline.store").setLevel(logging.ERROR)   # the expected "moved aside" warnings
+        logging.getLogger("pipeline.storage.store").setLevel(logging.ERROR)   # the expected "moved aside" warnings
         cache = StageCache(Path(root) / "cache")
         run_dir = Path(root) / f"run{worker}"
         frames = {key_of(k): expected_frame(key_of(k)) for k in range(keys)}
@@ -315,7 +315,7 @@ PROVENANCE = {"run_id", "config_hash", "overrides", "sweep", "job_num"}
 WAIT_THEN_RUN = """
 import runpy, sys, time
 from pathlib import Path
-import pipeline.runner, hydra  # the slow imports, before the start signal
+import pipeline.run.runner, hydra  # the slow imports, before the start signal
 ready, go = Path(sys.argv[1]), Path(sys.argv[2])
 ready.touch()
 while not go.exists():
@@ -327,7 +327,7 @@ runpy.run_module("pipeline", run_name="__main__", alter_sys=True)   # = python -
 
 def _sequential_tables(artifacts: Path, job: str) -> dict[str, pl.DataFrame]:
     from hydra import compose, initialize_config_dir
-    from pipeline.runner import RunContext, run_experiment
+    from pipeline.run.runner import RunContext, run_experiment
     overrides = [f"paths.artifacts={artifacts}", *COMMON, *JOBS[job]]
     with initialize_config_dir(version_base="1.3", config_dir=str(ROOT / "conf")):
         cfg = compose("config", overrides=overrides)

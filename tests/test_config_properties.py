@@ -4,7 +4,7 @@ are refused before any stage runs, with a message that names the key and what is
 Each test draws (experiment, key) pairs from every composed experiment in conf/experiment and a
 bad value of one kind (wrong type, negative spread, probability outside [0, 1], zero or negative
 count or duration, wrong vector or matrix shape, transition rows not summing to 1, unknown
-variant names). ``pipeline.runner.prepare`` is what the runner calls before its first stage: it
+variant names). ``pipeline.run.runner.prepare`` is what the runner calls before its first stage: it
 validates, builds every node and cross-checks them without reading or writing a file.
 ``pytest --hypothesis-show-statistics tests/test_config_properties.py`` prints how many cases ran.
 """
@@ -23,7 +23,7 @@ from omegaconf import DictConfig, ListConfig, OmegaConf, open_dict
 from hypothesis import HealthCheck, given, settings, strategies as st
 
 from pipeline.errors import ConfigError
-from pipeline.runner import prepare
+from pipeline.run.runner import prepare
 from tests.conftest import composed
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -218,7 +218,7 @@ def test_an_unknown_variant_name_is_refused(experiment, name):
     assert name in str(info.value) and "reference_variant" in str(info.value)
 
 
-# ---- pipeline.config.missing_keys names the unset values as OmegaConf.missing_keys does ------------
+# ---- pipeline.run.config.missing_keys names the unset values as OmegaConf.missing_keys does ------------
 _NAMES = st.text(alphabet="abcdefghij_", min_size=1, max_size=4)
 _LEAVES = st.one_of(st.integers(-3, 3), st.sampled_from(["???", "x", "?", "??? ", ""]), st.none())
 _TREES = st.recursive(_LEAVES, lambda children: st.one_of(st.lists(children, max_size=3),
@@ -230,7 +230,7 @@ _TREES = st.recursive(_LEAVES, lambda children: st.one_of(st.lists(children, max
 @given(tree=st.dictionaries(_NAMES, _TREES, max_size=4))
 def test_the_missing_keys_of_a_resolved_config_are_omegaconfs(tree):
     """validate reads them off the config it has resolved once, instead of OmegaConf's own walk."""
-    from pipeline.config import missing_keys
+    from pipeline.run.config import missing_keys
     cfg = OmegaConf.create(tree)
     assert sorted(missing_keys(OmegaConf.to_container(cfg, resolve=True))) == sorted(OmegaConf.missing_keys(cfg))
 

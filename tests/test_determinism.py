@@ -13,7 +13,7 @@ import polars as pl
 import pytest
 from polars.testing import assert_frame_equal
 
-from pipeline.runner import RunContext, run_experiment
+from pipeline.run.runner import RunContext, run_experiment
 from tests.conftest import composed_config, smoke_experiments
 
 ROOT = Path(__file__).resolve().parents[1]

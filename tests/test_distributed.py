@@ -2,7 +2,7 @@
 
 One test, one two-job sweep (Ray's start costs most of its time): the jobs run as Ray tasks in
 Ray worker processes, land in the usual ``<artifacts>/multirun/<time>/<job>/`` layout, the
-sweep summary is written by the driver's callback, and ``pipeline.query`` finds both jobs.
+sweep summary is written by the driver's callback, and ``pipeline.results.query`` finds both jobs.
 Skipped when ray or hydra-ray-launcher is not installed (``pip install -e '.[test,distributed]'``).
 """
 
@@ -23,7 +23,7 @@ from tests.extras import require_extra
 # .ci/run sets MTT_REQUIRE_DISTRIBUTED=1: in CI a missing extra fails instead of skipping
 require_extra("distributed", "hydra_plugins.hydra_ray_launcher", "ray")
 
-from pipeline.query import query  # noqa: E402  (after the skip: the module needs nothing of Ray)
+from pipeline.results.query import query  # noqa: E402  (after the skip: the module needs nothing of Ray)
 
 ROOT = Path(__file__).resolve().parents[1]
 pytestmark = pytest.mark.distributed

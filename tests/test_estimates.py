@@ -1,4 +1,4 @@
-"""A job holds one variant's estimate at a time (pipeline.estimates): the evaluation measures each
+"""A job holds one variant's estimate at a time (pipeline.storage.estimates): the evaluation measures each
 variant after its track stage and lets it go, a study's own summary reads the tables again one at a
 time, and the recording gets only the recorded runs' rows."""
 
@@ -12,11 +12,11 @@ from hydra import compose, initialize_config_dir
 
 from filters.base import TrackEstimate
 from filters.bias import BiasRegistrationResult
-from pipeline import runner as runner_module
-from pipeline.estimates import RecordedRuns, StoredEstimates, recorded_runs
-from pipeline.runner import RunContext, run_experiment
-from pipeline.schemas import PackedCovariance, estimate_from_frame, estimate_to_frame
-from pipeline.store import atomic_write_parquet
+from pipeline.run import runner as runner_module
+from pipeline.storage.estimates import RecordedRuns, StoredEstimates, recorded_runs
+from pipeline.run.runner import RunContext, run_experiment
+from pipeline.storage.schemas import PackedCovariance, estimate_from_frame, estimate_to_frame
+from pipeline.storage.store import atomic_write_parquet
 from tests.conftest import CONF
 
 
@@ -160,10 +160,10 @@ def test_the_shipped_studies_summaries_read_no_estimate_table_again(tmp_path, mo
 
 @pytest.mark.parametrize("experiment", ["mie_los", "sonar_case2"])
 def test_the_evaluation_lets_a_measured_variants_per_run_values_go(tmp_path, monkeypatch, experiment):
-    """Its summary statistics are resampled when it is added (pipeline.uncertainty.resample), so
+    """Its summary statistics are resampled when it is added (pipeline.evaluation.uncertainty.resample), so
     nothing holds its (runs x steps) metric arrays afterwards. Before, every variant's stayed until the
     summary: ~90 MB per 100-run study 003 variant, 1288 MB -> 1107 MB at that job's peak."""
-    from pipeline.uncertainty import RunValues
+    from pipeline.evaluation.uncertainty import RunValues
 
     original_add = runner_module.Evaluation.add
     alive_after_add: list[int] = []
@@ -196,9 +196,9 @@ def test_the_evaluation_lets_a_measured_variants_per_run_values_go(tmp_path, mon
 
 
 def test_recomputing_a_run_reads_one_variants_estimate_at_a_time(tmp_path, monkeypatch):
-    """pipeline.recompute evaluates the stored tables through StoredEstimates; its loop kept the
+    """pipeline.results.recompute evaluates the stored tables through StoredEstimates; its loop kept the
     previous estimate while the next one was read (two in memory)."""
-    from pipeline.recompute import recompute
+    from pipeline.results.recompute import recompute
     from tests.test_pipeline import run_in_process
 
     _, ctx = run_in_process(tmp_path, "run", "experiment=mie_los", "mc.runs=2")

@@ -6,13 +6,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipeline.faults import FAULTS, FaultChecks, describe, fault_flags, fault_summary
+from pipeline.evaluation.faults import FAULTS, FaultChecks, describe, fault_flags, fault_summary
 
 
 @pytest.fixture(params=["numpy", "compiled"])
 def checks_path(request, monkeypatch):
-    """Both ways of checking the matrices (pipeline.faults.COMPILED_ENTRIES decides by size)."""
-    from pipeline import faults
+    """Both ways of checking the matrices (pipeline.evaluation.faults.COMPILED_ENTRIES decides by size)."""
+    from pipeline.evaluation import faults
     monkeypatch.setattr(faults, "COMPILED_ENTRIES", 0 if request.param == "compiled" else 10**18)
     return request.param
 
@@ -88,7 +88,7 @@ def test_per_target_flags_reduce_to_the_step(checks_path):
 def test_the_compiled_checks_decide_as_numpys_on_a_mixed_batch(monkeypatch):
     """Healthy, asymmetric (above and below the tolerance), indefinite, singular, NaN/inf, reduced and
     not-yet-started matrices, over targets too: the compiled pass flags what numpy's does."""
-    from pipeline import faults
+    from pipeline.evaluation import faults
     rng = np.random.default_rng(7)
     x, P = healthy(R=6, K=40, n=6, seed=3)
     x = np.repeat(x[:, :, None], 2, axis=2)
@@ -135,7 +135,7 @@ def test_the_pipeline_flags_injected_faults_per_run_and_step_and_counts_them(tmp
     import polars as pl
     from hydra import compose, initialize_config_dir
 
-    from pipeline.runner import RunContext, run_experiment
+    from pipeline.run.runner import RunContext, run_experiment
     from tests.conftest import CONF
 
     overrides = ["mc.runs=5", "scenario.steps=30", "filters.fsimm._target_=tests.faulty_filters.FaultyFSIMM", "plugins.packages=[tests]",
@@ -193,7 +193,7 @@ def test_the_nees_bound_flags_diverging_steps_through_the_pipeline(tmp_path):
     import polars as pl
     from hydra import compose, initialize_config_dir
 
-    from pipeline.runner import RunContext, run_experiment
+    from pipeline.run.runner import RunContext, run_experiment
     from tests.conftest import CONF
 
     def run(name, bound):

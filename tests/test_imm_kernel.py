@@ -1,4 +1,4 @@
-"""The compiled IMM cycle (filters/imm_kernel.py, ``engine="numba"``) against the numpy cycle
+"""The compiled IMM cycle (filters/imm/kernel.py, ``engine="numba"``) against the numpy cycle
 (``engine="numpy"``, the reference): the same estimates to rounding, for the three estimators of
 study 001, with missed detections and per-run noise; and a run's numbers independent of its batch,
 bit for bit (alone, in chunks, beside runs of other sizes of running sets)."""
@@ -167,7 +167,7 @@ def test_one_compilation_serves_every_estimator_and_bank(models, meas):
     """filters.imm hands the kernel one set of argument types (C-contiguous int64 / float64 / bool,
     shared or per-run noise, shared or per-model F and Q): a second signature would compile again
     (seconds) in the middle of a run."""
-    from filters import imm_kernel
+    from filters.imm import kernel as imm_kernel
 
     for make in (FSIMM, VSIMM, AOVSIMM):
         make(models).run(meas)

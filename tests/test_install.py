@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from pipeline import environment
+from pipeline.run import environment
 
 ROOT = Path(__file__).resolve().parents[1]
 SOURCES = [p for d in ("pipeline", "filters", "hydra_plugins", "benchmarks", "tools", "tests")

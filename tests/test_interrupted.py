@@ -81,7 +81,7 @@ def test_a_run_killed_while_writing_parquet_reruns_to_the_same_tables(tmp_path, 
     kill_while(tmp_path, mode, "record.enabled=false")
     temps = assert_no_broken_final_file(tmp_path)
     assert temps, "the kill should have left the writer's hidden temp file behind"
-    from pipeline.query import query
+    from pipeline.results.query import query
     query("SELECT COUNT(*) AS n FROM summary", root=tmp_path)     # the tables stay queryable
     rerun = run(tmp_path, "record.enabled=false")
     assert_same_tables(reference, rerun)

@@ -1,4 +1,4 @@
-"""pipeline.memory: what a finished sweep job freed goes back to the operating system before the next
+"""pipeline.run.memory: what a finished sweep job freed goes back to the operating system before the next
 job of a one-process sweep (release_freed_memory), and the peak estimate a refusal relies on is not
 below what a job uses (estimate)."""
 
@@ -17,7 +17,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 SCRIPT = textwrap.dedent("""
     import os
-    from pipeline.memory import release_freed_memory
+    from pipeline.run.memory import release_freed_memory
 
     def rss():                       # resident bytes now (/proc: the test machines are Linux with glibc)
         return int(open("/proc/self/statm").read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
@@ -41,7 +41,7 @@ def test_the_heap_a_job_freed_is_returned_to_the_system():
 
 FREEZE = textwrap.dedent("""
     import gc, weakref
-    from pipeline.memory import exempt_survivors_from_collection, release_freed_memory
+    from pipeline.run.memory import exempt_survivors_from_collection, release_freed_memory
 
     class Node:
         pass
@@ -135,13 +135,13 @@ def test_a_jobs_peak_memory_is_its_own_not_its_parents(tmp_path):
 
 
 def test_the_memory_estimate_does_not_grow_with_the_number_of_variants():
-    """A job holds one variant's estimate at a time (pipeline.estimates): the estimate counted every
+    """A job holds one variant's estimate at a time (pipeline.storage.estimates): the estimate counted every
     variant's (a 7-variant ADS-B flight 1.70 GB estimated against 0.56-0.59 GB measured at 100 runs;
     study 003 5.2 GB against 1.1 GB), so a refusal could stop a job that fits."""
     from omegaconf import open_dict
 
-    from pipeline.memory import check
-    from pipeline.runner import prepare
+    from pipeline.run.memory import check
+    from pipeline.run.runner import prepare
     from tests.conftest import composed
 
     cfg = composed("adsb_jet", "mc.runs=100", "paths.artifacts=/nonexistent-artifacts")

@@ -7,8 +7,8 @@ import numpy as np
 import polars as pl
 from hydra import compose, initialize_config_dir
 
-from filters.particle import BearingLikelihood, SonobuoyModel, _masked_nis, bearings
-from pipeline.config import build
+from filters.particle.reference import BearingLikelihood, SonobuoyModel, _masked_nis, bearings
+from pipeline.run.config import build
 from tests.conftest import CONF
 from tests.test_study004_pipeline import SHORT, run_study
 

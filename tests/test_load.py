@@ -25,7 +25,7 @@ def test_fifty_job_joblib_sweep_completes_with_bounded_memory(tmp_path):
         cwd=tmp_path, capture_output=True, text=True, timeout=600, env=env)
     assert proc.returncode == 0, proc.stderr[-3000:]
 
-    from pipeline.query import query
+    from pipeline.results.query import query
     jobs = query("""SELECT job_num, COUNT(*) AS rows, MIN(status) AS status, MIN("mc.seed") AS seed
                     FROM summary GROUP BY job_num ORDER BY job_num""", root=tmp_path)
     assert jobs["job_num"].to_list() == list(range(JOBS))

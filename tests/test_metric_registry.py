@@ -1,4 +1,4 @@
-"""The metric registry (pipeline.metrics): one definition per name, read by the summary, the printed
+"""The metric registry (pipeline.evaluation.metrics): one definition per name, read by the summary, the printed
 tables and the recordings; one nees()."""
 
 from __future__ import annotations
@@ -7,8 +7,8 @@ import numpy as np
 import polars as pl
 import pytest
 
-from pipeline import metrics
-from pipeline.metrics import Metric, format_value, lookup, nees, register
+from pipeline.evaluation import metrics
+from pipeline.evaluation.metrics import Metric, format_value, lookup, nees, register
 from tests.conftest import smoke_experiments
 
 
@@ -70,7 +70,7 @@ def test_the_compiled_nees_agrees_with_numpys_solve(monkeypatch):
     np.testing.assert_allclose(values["compiled"], values["numpy"], rtol=1e-9)
     assert np.isnan(values["numpy"][2, 5, 0]) and np.isnan(values["numpy"][3, 7, 1])
     # a PackedCovariance is solved from its float32 triangles: as its unpacked matrices are
-    from pipeline.schemas import PackedCovariance
+    from pipeline.storage.schemas import PackedCovariance
     upper = np.triu_indices(6)
     packed = PackedCovariance(P[..., upper[0], upper[1]].astype(np.float32), 6)
     np.testing.assert_array_equal(nees(error, packed), nees(error, np.asarray(packed)))
@@ -89,7 +89,7 @@ def test_every_metric_a_study_writes_is_registered_with_a_unit(smoke_runs, exper
 def test_one_query_finds_the_position_rmse_of_every_study(smoke_runs):
     """'Lowest position RMSE per experiment' silently dropped study 002, whose names carried the radar
     and target (position_rmse_s2_t32): metric is now the quantity, with component / sensor / target columns."""
-    from pipeline.query import query
+    from pipeline.results.query import query
     studies = smoke_experiments()
     for experiment, _ in studies:
         smoke_runs(experiment)                      # the session's smoke runs, all under one root

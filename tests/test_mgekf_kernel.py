@@ -1,4 +1,4 @@
-"""The compiled sonar trackers (filters/mgekf_kernel.py, ``engine="numba"``) against the numpy scans
+"""The compiled sonar trackers (filters/mgekf/kernel.py, ``engine="numba"``) against the numpy scans
 (``engine="numpy"``, the reference): the same estimates, covariances and NIS to rounding for every
 architecture of study 003 and both bearing rows, through active -> passive -> active switches, a
 turning target and scans of two lengths; and a run's numbers independent of its batch, bit for bit."""
@@ -106,7 +106,7 @@ def test_the_kernel_is_loaded_before_the_clock_with_the_one_specialisation_every
     path = tmp_path / "reports.pkl"
     path.write_bytes(pickle.dumps(reports))
     code = ("import pickle, sys, dataclasses\n"
-            "from filters import mgekf_kernel\n"
+            "from filters.mgekf import kernel as mgekf_kernel\n"
             "from filters.mgekf import OnlyMGEKF, KFPlusMGEKF\n"
             f"reports = pickle.loads(open({str(path)!r}, 'rb').read())\n"
             "frozen = dataclasses.replace(reports, z=reports.z.copy(), ownship_acceleration=reports.ownship_acceleration.copy())\n"

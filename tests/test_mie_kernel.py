@@ -1,4 +1,4 @@
-"""The compiled loops of study 000's filters (filters/mie_kernel.py, ``engine="numba"``: A and A-full,
+"""The compiled loops of study 000's filters (filters/input_estimation/kernel.py, ``engine="numba"``: A and A-full,
 B and C) against the numpy scans (``engine="numpy"``, the reference): the same states, covariances,
 input levels, test statistics and NIS to rounding, and the same detections (per axis for C) and
 onsets, for each test (A's per-axis sum, A-full's quadratic form, B's pooled, C's per-axis) and each
@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from filters.input_estimation import LOSMIE, InertialMIE
-from pipeline.runner import prepare
+from pipeline.run.runner import prepare
 from tests.conftest import composed
 
 
@@ -77,7 +77,7 @@ def test_the_gls_variant_runs_the_numpy_scans():
     scans run whatever the engine says."""
     filter_ = LOSMIE(pseudo_residual_covariance="full")
     assert filter_.engine == "numba"
-    import filters.mie_kernel as kernel
+    import filters.input_estimation.kernel as kernel
 
     calls = []
     original = kernel.los_mie

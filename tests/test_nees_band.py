@@ -8,7 +8,7 @@ import numpy as np
 
 from filters.bias import cv_transition, dcwna_process_noise
 from filters.kalman import predict, update
-from pipeline.evaluate import consistency_metrics
+from pipeline.evaluation.evaluate import consistency_metrics
 
 
 def nees_of_a_kalman_filter(q_scale: float, runs: int = 200, steps: int = 100, seed: int = 3) -> np.ndarray:
@@ -57,7 +57,7 @@ def test_the_band_handles_missing_runs_and_varying_dof_as_worked_by_hand():
 def test_the_band_is_in_the_metrics_and_beside_the_nees_in_the_recording(tmp_path):
     from hydra import compose, initialize_config_dir
 
-    from pipeline.runner import RunContext, run_experiment
+    from pipeline.run.runner import RunContext, run_experiment
     from tests.conftest import CONF
     from tests.rrd_reading import entity_index, read_chunks
 

@@ -9,7 +9,7 @@ import pytest
 from filters.base import MeasurementSeries
 from filters.imm import FSIMM, ModeSet, combined_prediction_nis
 from filters.models import AccelerationModelSet
-from pipeline.evaluate import nis_metrics
+from pipeline.evaluation.evaluate import nis_metrics
 
 
 def one_slot(x, P, log_predicted=0.0):
@@ -85,7 +85,7 @@ def test_every_variant_of_studies_001_and_000_has_nis_with_its_band_in_the_metri
     import polars as pl
     from hydra import compose, initialize_config_dir
 
-    from pipeline.runner import RunContext, run_experiment
+    from pipeline.run.runner import RunContext, run_experiment
     from tests.conftest import CONF
     from tests.rrd_reading import entity_index, read_chunks
 

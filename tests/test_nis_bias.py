@@ -19,7 +19,7 @@ from filters.bias import (
 from pipeline.data import Detections, Truth
 from pipeline.studies.async_bias.adapter import BiasRegistrationStudy, bias_metric_units, bias_study_metrics, target_mean_nis
 from pipeline.studies.async_bias import codec as bias_codec
-from pipeline.evaluate import resolved
+from pipeline.evaluation.evaluate import resolved
 
 POSITIONS = np.array([[0.0, 0.0], [10_000.0, 0.0]])
 NOISE_STD = np.array([[10.0, 1e-3], [10.0, 1e-3]])
@@ -197,7 +197,7 @@ def test_recording_has_a_nis_tab_with_each_variant_and_its_band(tmp_path: Path):
     from rerun.chunk import RrdReader
 
     from pipeline.studies.async_bias.recording import write_bias_recording
-    from pipeline.evaluate import metrics_frame
+    from pipeline.evaluation.evaluate import metrics_frame
     from tests.rrd_reading import entity_index, read_chunks, temporal
 
     truth, reports = _study_case(runs=2, targets=3, reports=10)

@@ -14,8 +14,8 @@ from filters.mgekf import (
     KFPlusMGEKF, OnlyMGEKF, PlainEKF, SonarReports, bearing_range, converted_update, nonlinear_update,
     relative_motion_model,
 )
-from pipeline.runner import RunContext, run_experiment
-from pipeline.evaluate import nis_metrics
+from pipeline.run.runner import RunContext, run_experiment
+from pipeline.evaluation.evaluate import nis_metrics
 from tests.conftest import CONF
 from tests.rrd_reading import entity_index, read_chunks, temporal
 

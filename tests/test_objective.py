@@ -1,4 +1,4 @@
-"""The objective of a parameter search (conf/config.yaml ``objective``, pipeline.objective): checked
+"""The objective of a parameter search (conf/config.yaml ``objective``, pipeline.launch.objective): checked
 before any stage, returned by the task function, and the sweep's best job written beside the sweep.
 Needs no extra: any multirun whose jobs name an objective gets best_config.yaml (tests/test_tune.py
 runs the Optuna sweeper itself)."""
@@ -13,8 +13,8 @@ import pytest
 import yaml
 
 from pipeline.errors import ConfigError
-from pipeline.objective import BEST_CONFIG, objective_value, trial_result
-from pipeline.runner import prepare
+from pipeline.launch.objective import BEST_CONFIG, objective_value, trial_result
+from pipeline.run.runner import prepare
 from tests.test_pipeline import cli, compose_cfg
 
 OBJECTIVE = "objective={variant: vsimm, series: acceleration_rmse_x, window: after_switch, direction: minimize}"
@@ -78,12 +78,12 @@ def test_a_multirun_with_an_objective_writes_the_best_jobs_config_beside_the_swe
 
 
 def test_a_job_config_reads_back_as_pyyaml_reads_it(tmp_path):
-    """pipeline.store.read_yaml (libyaml's parser, what a sweep's aggregation reads every job's
+    """pipeline.storage.store.read_yaml (libyaml's parser, what a sweep's aggregation reads every job's
     config.yaml with) gives the objects PyYAML's pure-Python safe loader gives, for a whole
     composed config as a job writes it and for the scalars YAML 1.1 resolves by their look."""
     from omegaconf import OmegaConf
 
-    from pipeline.store import read_yaml
+    from pipeline.storage.store import read_yaml
 
     cfg = compose_cfg("experiment=sonobuoy_case2", OBJECTIVE, "paths.artifacts=/tmp/x")
     written = OmegaConf.to_yaml(cfg) + ("tricky: {small: 1.0e-06, text_number: '1e-3', yes_text: 'yes', on: true, "

@@ -1,4 +1,4 @@
-"""The compiled scan of study 004's particle filters (filters/particle_kernel.py): its float32
+"""The compiled scan of study 004's particle filters (filters/particle/kernel.py): its float32
 functions against float64 numpy, one scan against the numpy loop (engine "numpy") from the same
 particles and random numbers, its independence of chunks, threads and batch, and its cache."""
 
@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from numba import njit
 
-from filters import particle_kernel as kernel
+from filters.particle import kernel
 from filters.particle import MultipleModelParticleFilter
 from tests.test_particle import _reports
 
@@ -114,10 +114,10 @@ def test_the_compiled_scan_is_cached_where_it_can_be_written_and_a_new_process_l
     # a second compilation (~25 s) in every new process's cache
     assert len(kernel.scan.signatures) == 1, kernel.scan.signatures
     path = kernel.scan.stats.cache_path
-    assert os.access(path, os.W_OK) and any(name.startswith("particle_kernel.scan-") for name in os.listdir(path))
+    assert os.access(path, os.W_OK) and any(name.startswith("kernel.scan-") for name in os.listdir(path))
     code = ("from tests.test_particle import _reports\n"
             "from filters.particle import MultipleModelParticleFilter\n"
-            "from filters import particle_kernel as kernel\n"
+            "from filters.particle import kernel\n"
             "MultipleModelParticleFilter(particles=50).run(_reports(runs=1, duration=10.0)[1])\n"
             "print(sum(kernel.scan.stats.cache_hits.values()), sum(kernel.scan.stats.cache_misses.values()))\n")
     out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, env=dict(os.environ, PYTHONPATH=str(ROOT)),
@@ -129,7 +129,7 @@ def test_the_inline_draws_are_numpys_numbers_and_the_fallback_gives_the_same_res
     """The kernel draws each run's numbers from its PCG64 state itself (numpy's algorithms: the
     same numbers, the Generators left in the same state); with that switched off the Generators
     draw them (the fallback if numpy ever changed them): the estimates are bit-identical."""
-    from filters import particle
+    from filters.particle import reference as particle
 
     assert particle._inline_draws_match()
     _, reports = _reports(runs=3, duration=60.0, clutter=True)

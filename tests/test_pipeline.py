@@ -13,7 +13,7 @@ import polars as pl
 import pytest
 
 from pipeline.errors import ConfigError
-from pipeline.runner import RunContext, run_experiment
+from pipeline.run.runner import RunContext, run_experiment
 from tests.conftest import ROOT, composed_config
 
 
@@ -165,7 +165,7 @@ def _sweep_summaries(root: Path) -> pl.DataFrame:
 def test_multirun_sweep_yields_one_summary_per_job_with_the_swept_value(tmp_path):
     proc = cli(tmp_path, "-m", "filters.vsimm.t1_mu=0.8,0.85", "mc.runs=3", "scenario.steps=60", "record.enabled=false")
     assert proc.returncode == 0, proc.stderr
-    from pipeline.query import query
+    from pipeline.results.query import query
     rows = query("""SELECT "filters.vsimm.t1_mu" AS t1_mu, value FROM summary
                     WHERE variant = 'VSIMM' AND series = 'acceleration_rmse_x' AND "window" = 'all'
                     ORDER BY t1_mu""", root=tmp_path)
@@ -204,7 +204,7 @@ def test_every_experiment_file_runs_end_to_end(tmp_path):
     for sweep in ([f"experiment=glob(*,exclude=[{listed}])"], [f"experiment=glob([{listed}])", *SHORT]):
         proc = cli(tmp_path, "-m", *sweep, "mc.runs=2", "record.enabled=false", timeout=300)
         assert proc.returncode == 0, proc.stderr[-2000:]
-    from pipeline.query import query
+    from pipeline.results.query import query
     experiments = sorted(p.stem for p in (ROOT / "conf" / "experiment").glob("*.yaml"))
     runs = query("SELECT experiment, status FROM runs ORDER BY experiment", root=tmp_path)
     assert runs["experiment"].to_list() == experiments and set(runs["status"]) == {"ok"}

@@ -1,4 +1,4 @@
-"""Progress of long stages (pipeline.progress): plain lines on a fake clock, the bar, the mode chosen
+"""Progress of long stages (pipeline.run.progress): plain lines on a fake clock, the bar, the mode chosen
 for a terminal, a pipe and a sweep, and what a real run and a real sweep print (issue 19)."""
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 
 from filters.progress import SILENT, current
-from pipeline.progress import DELAY, INTERVAL, Reporter, Task, choose_mode, duration
+from pipeline.run.progress import DELAY, INTERVAL, Reporter, Task, choose_mode, duration
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -261,7 +261,7 @@ def test_every_studys_filters_report_their_scans_and_listening_changes_nothing(e
     from hydra import compose, initialize_config_dir
 
     from filters.progress import listening
-    from pipeline.runner import prepare
+    from pipeline.run.runner import prepare
     with initialize_config_dir(version_base="1.3", config_dir=str(ROOT / "conf")):
         cfg = compose("config", overrides=[f"experiment={experiment}", "mc.runs=3", *overrides])
     prepared = prepare(cfg)

@@ -1,4 +1,4 @@
-"""Tests for ``pipeline.query`` (the ``mtt-query`` CLI and its Python API) on a fake artifacts tree.
+"""Tests for ``pipeline.results.query`` (the ``mtt-query`` CLI and its Python API) on a fake artifacts tree.
 
 The tree follows the writer conventions: ``runs/<exp>/<ts>/`` and ``multirun/<ts>/<job>/``
 with ``status.json``, ``summary.parquet`` and ``metrics.parquet``; hidden temp files
@@ -16,8 +16,8 @@ from pathlib import Path
 import polars as pl
 import pytest
 
-from pipeline import query as q
-from pipeline.query import QueryError, QueryWarning, load_tables, main, query
+from pipeline.results import query as q
+from pipeline.results.query import QueryError, QueryWarning, load_tables, main, query
 
 SWEEP = "multirun/2026-11-21_08-00-00_000000"
 RUN_CV = "runs/cv_turn/2026-11-20_09-00-00"

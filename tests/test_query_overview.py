@@ -12,7 +12,7 @@ from pathlib import Path
 import polars as pl
 import pytest
 
-from pipeline.query import QueryWarning, compared_literals, main, query, tables_overview
+from pipeline.results.query import QueryWarning, compared_literals, main, query, tables_overview
 
 RUN_AO = "runs/ao_vsimm_s1/2026-11-20_10-00-00"
 RUN_AO_20 = "runs/ao_vsimm_s1/2026-11-21_10-00-00"

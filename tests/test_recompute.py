@@ -5,7 +5,7 @@ from __future__ import annotations
 import polars as pl
 import pytest
 
-from pipeline.recompute import main
+from pipeline.results.recompute import main
 from tests.conftest import smoke_experiments
 from tests.test_pipeline import run_in_process
 

@@ -1,4 +1,4 @@
-"""pipeline.recording: the .rrd written for an experiment has the entity tree, timelines and
+"""pipeline.views.recording: the .rrd written for an experiment has the entity tree, timelines and
 blueprint the viewer layout relies on. Read back with rerun.chunk.RrdReader (no viewer)."""
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ from omegaconf import OmegaConf
 
 from filters.base import MeasurementSeries
 from filters.imm import AOVSIMM, FSIMM
-from pipeline.recording import recording_id, write_recording
+from pipeline.views.recording import recording_id, write_recording
 from pipeline.studies.ao_vsimm.sensor import PositionSensor
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -421,8 +421,8 @@ def test_3d_record_runs_validated(case3d, tmp_path, bad):
 
 
 # ---- issue 19: what the viewer shows (checked on the blueprint and the data, without pixels) ------
-from pipeline.blueprint_parts import title_chars                                     # noqa: E402
-from pipeline.colours import model_colour, variant_colour                            # noqa: E402
+from pipeline.views.blueprints import title_chars                                     # noqa: E402
+from pipeline.views.colours import model_colour, variant_colour                            # noqa: E402
 from tests.rrd_reading import (blueprint_views, capture_blueprint, legend_visible, read_chunks,  # noqa: E402
                                rows as chunk_rows, up_to_now)
 

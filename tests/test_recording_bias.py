@@ -15,7 +15,7 @@ from filters.bias import EXXRegistration, LocalTracking, PseudoBiasRegistration,
 from pipeline.data import Detections, Truth
 from pipeline.studies.async_bias.recording import BIAS_DISPLAY, write_bias_recording
 from pipeline.studies.async_bias.adapter import bias_study_metrics
-from pipeline.evaluate import metrics_frame
+from pipeline.evaluation.evaluate import metrics_frame
 from tests.rrd_reading import assert_complete_recording, entity_index, read_chunks, rows, temporal
 
 RUNS, TARGETS = 2, 3

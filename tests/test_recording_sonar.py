@@ -13,7 +13,7 @@ from filters.mgekf import KFPlusMGEKF, OnlyMGEKF
 from pipeline.data import Truth
 from pipeline.studies.sonar.scenario import SonarEncounter
 from pipeline.studies.sonar.sensor import ActivePassiveSonar
-from pipeline.evaluate import metrics_frame
+from pipeline.evaluation.evaluate import metrics_frame
 from pipeline.contract import RecordingInputs
 from pipeline.studies.sonar.adapter import SonarStudy
 from tests.rrd_reading import assert_complete_recording, entity_index, read_chunks, rows, temporal

@@ -15,7 +15,7 @@ from filters.base import TrackEstimate
 from pipeline.studies.sonobuoy.recording import BEARING_LINE_SCALE, MODE_COLOURS, nees_band, write_sonobuoy_recording
 from pipeline.studies.sonobuoy.scenario import SonobuoyField
 from pipeline.studies.sonobuoy.sensor import SonobuoyBearings
-from pipeline.evaluate import metrics_frame
+from pipeline.evaluation.evaluate import metrics_frame
 from pipeline.contract import RecordingInputs
 from pipeline.studies.sonobuoy.adapter import MODE_NAMES, SonobuoyStudy
 from tests.rrd_reading import assert_complete_recording, entity_index, read_chunks, rows, temporal

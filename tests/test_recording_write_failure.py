@@ -51,7 +51,7 @@ def test_a_failure_that_cannot_be_recorded_still_reports_the_job_error(tmp_path,
     from omegaconf import OmegaConf
 
     from pipeline.__main__ import _fail
-    from pipeline.runner import RunContext
+    from pipeline.run.runner import RunContext
 
     blocked = tmp_path / "run"
     blocked.write_text("")                       # a file where the run folder should be: every write fails

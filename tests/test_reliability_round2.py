@@ -14,8 +14,8 @@ import polars as pl
 import pytest
 
 from pipeline.errors import ConfigError
-from pipeline.faults import FAULTS, fault_flags, fault_summary
-from pipeline.store import inside
+from pipeline.evaluation.faults import FAULTS, fault_flags, fault_summary
+from pipeline.storage.store import inside
 from tests.test_pipeline import cli, run_in_process
 
 
@@ -97,8 +97,8 @@ def test_summary_windows_fit_the_scenario(tmp_path, caplog):
 
 def test_sql_reads_the_project_tables_only(tmp_path):
     """Item 6: mtt-query sql "SELECT * FROM read_csv('/etc/passwd')" returned the file."""
-    from pipeline.query import QueryError, query
-    from pipeline.report import TargetSpec, evaluate_target, load_run
+    from pipeline.results.query import QueryError, query
+    from pipeline.results.report import TargetSpec, evaluate_target, load_run
     secret = tmp_path / "secret.csv"
     secret.write_text("user,password\nroot,hunter2\n")
     _, ctx = run_in_process(tmp_path, "ao_vsimm_s1/run", "mc.runs=2", "scenario.steps=20")
@@ -130,8 +130,8 @@ def _flip(path: Path, offset: int, bit: int = 0) -> None:
 
 def test_a_cached_table_that_still_parses_after_a_flipped_bit_is_not_served(tmp_path):
     """Item 1: single bit flips in a cached table's data pages (footer intact) were served (59 of 60)."""
-    from pipeline.schemas import META_TABLE, META_VERSION, SCHEMA_VERSION
-    from pipeline.store import StageCache
+    from pipeline.storage.schemas import META_TABLE, META_VERSION, SCHEMA_VERSION
+    from pipeline.storage.store import StageCache
     rng = np.random.default_rng(3)
     df = pl.DataFrame({"run": np.repeat(np.arange(20, dtype=np.int32), 50), "x": rng.normal(size=1000) * 80,
                        "P": pl.Series(rng.normal(size=(1000, 4)), dtype=pl.Array(pl.Float64, 4)),
@@ -159,8 +159,8 @@ def test_a_cached_table_that_still_parses_after_a_flipped_bit_is_not_served(tmp_
 
 def test_other_rows_under_copied_metadata_are_not_served(tmp_path):
     """Item 1: a file with altered rows and the original's metadata (key, checksum) was reused."""
-    from pipeline.schemas import META_TABLE, META_VERSION, SCHEMA_VERSION
-    from pipeline.store import StageCache
+    from pipeline.storage.schemas import META_TABLE, META_VERSION, SCHEMA_VERSION
+    from pipeline.storage.store import StageCache
     cache = StageCache(tmp_path)
     path = cache.store("scenario", "k", pl.DataFrame({"x": [81.49, 12.0]}), {META_TABLE: "truth",
                                                                            META_VERSION: SCHEMA_VERSION})
@@ -171,8 +171,8 @@ def test_other_rows_under_copied_metadata_are_not_served(tmp_path):
 
 def test_a_damaged_cache_file_is_recomputed_and_a_damaged_run_table_is_not_queried(tmp_path, caplog):
     """Item 1 end to end: study 002's position_rmse of one target became inf, reused with status ok."""
-    from pipeline.query import query
-    from pipeline.report import ReportError, load_run
+    from pipeline.results.query import query
+    from pipeline.results.report import ReportError, load_run
     first, ctx = run_in_process(tmp_path, "a", "mc.runs=2", "scenario.steps=20")
     tracks = sorted((tmp_path / "cache" / "track").glob("*.parquet"))
     damaged = tracks[0]
@@ -305,9 +305,9 @@ def test_a_refused_single_run_leaves_no_folder_but_a_refused_sweep_job_is_listed
 
 def test_a_running_job_whose_process_is_gone_is_listed_as_interrupted(tmp_path):
     """Item 16: killed runs stayed 'running' forever in mtt-query list."""
-    from pipeline.process import identity
-    from pipeline.query import runs_frame
-    gone = json.loads(subprocess.run([sys.executable, "-c", "import json; from pipeline.process import identity; "
+    from pipeline.run.process import identity
+    from pipeline.results.query import runs_frame
+    gone = json.loads(subprocess.run([sys.executable, "-c", "import json; from pipeline.run.process import identity; "
                                       "print(json.dumps(identity()))"], capture_output=True, text=True, check=True,
                                      env={**os.environ, "PYTHONPATH": str(Path(__file__).parents[1])}).stdout)
     for name, process in (("killed", gone), ("alive", identity()), ("elsewhere", {**gone, "host": "another-host"})):
@@ -329,8 +329,8 @@ def test_a_job_records_its_process(tmp_path):
 # ---- item 17: a report on a sweep with a failed job --------------------------------------------------
 
 def test_a_report_on_a_sweep_with_a_failed_job_reports_the_others_and_says_why(tmp_path):
-    """Item 17: pipeline.report wrote job 0, then exited 2 on the failed job and wrote no index.md."""
-    from pipeline.report import main as report_main
+    """Item 17: pipeline.results.report wrote job 0, then exited 2 on the failed job and wrote no index.md."""
+    from pipeline.results.report import main as report_main
     proc = cli(tmp_path, "-m", "mc.runs=2,0,3", "scenario.steps=20", "record.enabled=false")
     assert proc.returncode == 1 and "2 ok, 1 failed" in proc.stderr
     (sweep,) = (tmp_path / "multirun").iterdir()
@@ -374,7 +374,7 @@ def test_a_listed_package_may_name_its_classes(tmp_path):
 
 def test_the_checksum_is_the_same_however_the_rows_are_chunked():
     """A table streamed in chunks of runs is verified when read back whole: one checksum for both."""
-    from pipeline.store import TableChecksum, content_checksum
+    from pipeline.storage.store import TableChecksum, content_checksum
     rng = np.random.default_rng(0)
     n = 5000
     df = pl.DataFrame({"run": np.arange(n) // 100, "x": rng.normal(size=n),
@@ -419,7 +419,7 @@ def test_a_job_estimated_beyond_the_memory_limit_is_refused_before_any_stage(tmp
 
 
 def test_without_a_limit_the_memory_available_now_is_the_limit(tmp_path, monkeypatch):
-    from pipeline import memory
+    from pipeline.run import memory
     monkeypatch.setattr(memory, "available_bytes", lambda: 512 * 2**20)
     with pytest.raises(ConfigError, match=r"more than the 0.5 GB available on this machine now"):
         run_in_process(tmp_path, "big", "mc.runs=200000")
@@ -428,7 +428,7 @@ def test_without_a_limit_the_memory_available_now_is_the_limit(tmp_path, monkeyp
 
 
 def test_the_estimate_scales_with_runs_and_allows_what_fits():
-    from pipeline.memory import BASELINE_BYTES, MemoryEstimate
+    from pipeline.run.memory import BASELINE_BYTES, MemoryEstimate
     guess = MemoryEstimate(runs=1000, steps=201, per_run_inputs=26_000, per_run_estimates=150_000, per_run_peak=300_000)
     assert guess.peak == BASELINE_BYTES + 1000 * 300_000
     assert guess.max_runs(BASELINE_BYTES + 3_000_000) == 10

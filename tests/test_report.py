@@ -13,7 +13,7 @@ import polars as pl
 import pytest
 
 from pipeline.errors import ConfigError
-from pipeline.report import ReportError, ReportSpec, TargetSpec, evaluate_target, load_run, main, write_reports
+from pipeline.results.report import ReportError, ReportSpec, TargetSpec, evaluate_target, load_run, main, write_reports
 from tests.test_pipeline import ROOT, run_in_process
 
 SMALL = ("mc.runs=3", "scenario.steps=60")
@@ -135,7 +135,7 @@ def test_every_experiment_declares_targets_that_parse():
 
 def test_current_rechecks_a_stored_run_against_the_definitions_in_conf(small_run, tmp_path):
     """--current: the run's tables, today's report definition (here the same: the same targets)."""
-    from pipeline.report import write_run_report
+    from pipeline.results.report import write_run_report
     recorded = write_run_report(small_run, tmp_path / "recorded")
     current = write_run_report(small_run, tmp_path / "current", current=True)
     assert [(t.spec.id, t.measured, t.verdict) for t in current.targets] == \
@@ -146,7 +146,7 @@ def test_current_rechecks_a_stored_run_against_the_definitions_in_conf(small_run
 def _tables_with_resamples(a: np.ndarray, b: np.ndarray | None = None, runs: int = 100):
     """Summary values a[0] (and b[0]) of variants a (and b) with joint resamples a[1:] (b[1:]): the
     same resampled runs in both."""
-    from pipeline.report import RunTables, pivot_summary, resampled_wide
+    from pipeline.results.report import RunTables, pivot_summary, resampled_wide
     columns = [("a", a)] + ([("b", b)] if b is not None else [])
     summary = pl.DataFrame({"variant_key": [k for k, _ in columns], "series": ["position_rmse"] * len(columns),
                             "window": ["all"] * len(columns), "value": [v[0] for _, v in columns]})
@@ -190,7 +190,7 @@ def test_a_target_over_a_window_free_value_is_judged_on_its_value():
 
 
 def test_a_run_without_stored_resamples_is_judged_on_its_values_and_says_so():
-    from pipeline.report import RunTables, pivot_summary
+    from pipeline.results.report import RunTables, pivot_summary
     summary = pl.DataFrame({"variant_key": ["a"], "series": ["position_rmse"], "window": ["all"], "value": [9.8]})
     result = evaluate_target(RunTables(Path("."), "x", {}, {"runs": 100}, summary, pl.DataFrame(),
                                        pivot_summary(summary)), THRESHOLD)

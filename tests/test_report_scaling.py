@@ -10,7 +10,7 @@ import polars as pl
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
-from pipeline.report import ReportSpec
+from pipeline.results.report import ReportSpec
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -13,7 +13,7 @@ from __future__ import annotations
 import polars as pl
 import pytest
 
-from pipeline.report import ReportSpec, evaluate_finding, evaluate_target, load_run
+from pipeline.results.report import ReportSpec, evaluate_finding, evaluate_target, load_run
 from tests.test_pipeline import run_in_process
 
 RUNS = 100          # the paper's size

@@ -10,9 +10,9 @@ from __future__ import annotations
 import numpy as np
 from hydra import compose, initialize_config_dir
 
-from pipeline.config import build
+from pipeline.run.config import build
 from tests.conftest import CONF
-from pipeline.evaluate import resolved
+from pipeline.evaluation.evaluate import resolved
 
 
 def _run(experiment: str, runs: int, variants, *overrides: str):

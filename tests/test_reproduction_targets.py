@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from pipeline.report import ReportSpec, evaluate_target, load_run
+from pipeline.results.report import ReportSpec, evaluate_target, load_run
 from tests.conftest import EXPERIMENTS, composed
 from tests.test_pipeline import run_in_process
 

@@ -19,7 +19,7 @@ from tests.conftest import ROOT
 
 NOT_AT_IMPORT = ["scipy", "matplotlib", "numba", "rerun", "stonesoup", "optuna", "submitit", "tqdm"]
 # a job without a recording on no terminal. It imports numba: study 001's IMMs run compiled
-# (filters/imm_kernel.py; ~0.6-1 s of numba's start, which a 20-run job does not win back, a 100-run
+# (filters/imm/kernel.py; ~0.6-1 s of numba's start, which a 20-run job does not win back, a 100-run
 # one does). It does import scipy.stats (~0.9 s on the 2-core machine):
 # its intervals and paired tests are scipy.stats' (t, chi-square, Clopper-Pearson, Wilcoxon), kept
 # as the library's rather than re-derived here to save that second
@@ -34,7 +34,7 @@ def _python(code: str, cwd: Path) -> subprocess.CompletedProcess:
 
 
 def test_importing_the_runner_and_the_app_loads_none_of_the_heavy_modules(tmp_path):
-    proc = _python("import pipeline.runner, pipeline.__main__\n" + _LOADED.format(names=NOT_AT_IMPORT), tmp_path)
+    proc = _python("import pipeline.run.runner, pipeline.__main__\n" + _LOADED.format(names=NOT_AT_IMPORT), tmp_path)
     assert proc.returncode == 0, proc.stderr
     assert json.loads(proc.stdout.strip().splitlines()[-1]) == []
 

@@ -27,13 +27,13 @@ from tests.extras import require_extra
 require_extra("stonesoup", "stonesoup")
 
 from pipeline.errors import ConfigError  # noqa: E402
-from pipeline.report import ReportSpec, evaluate_target, load_run as load_tables  # noqa: E402
-from pipeline.store import read_table  # noqa: E402
+from pipeline.results.report import ReportSpec, evaluate_target, load_run as load_tables  # noqa: E402
+from pipeline.storage.store import read_table  # noqa: E402
 from tests.test_pipeline import run_in_process  # noqa: E402
 
 
 def _estimates(run_dir, key):
-    from pipeline import schemas
+    from pipeline.storage import schemas
     return schemas.estimate_from_frame(*read_table(run_dir / "estimates" / f"{key}.parquet"))
 
 
@@ -243,7 +243,7 @@ def test_stonesoup_classes_outside_its_component_packages_need_listing(tmp_path)
     assert not victim.exists()
     from omegaconf import OmegaConf
 
-    from pipeline.config import check_targets
+    from pipeline.run.config import check_targets
     check_targets(OmegaConf.create({"plugins": {"packages": ["stonesoup.writer"]},
                                     "x": {"_target_": "stonesoup.writer.yaml.YAMLWriter"}}))   # listed: allowed
     with pytest.raises(ConfigError, match="plugins.packages"):

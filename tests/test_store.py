@@ -6,8 +6,8 @@ import numpy as np
 import polars as pl
 import pytest
 
-from pipeline import schemas
-from pipeline.store import atomic_write_parquet
+from pipeline.storage import schemas
+from pipeline.storage.store import atomic_write_parquet
 from tests.conftest import scenario
 
 
@@ -45,12 +45,12 @@ def test_a_table_with_missing_rows_is_refused():
 
 
 def test_the_cache_key_changes_with_the_code_that_produces_the_output(monkeypatch):
-    from pipeline import store
-    key = store.stage_key("track", {"filter": {"name": "B"}}, ("abc",))
-    assert key == store.stage_key("track", {"filter": {"name": "B"}}, ("abc",))
-    from pipeline import fingerprint
+    from pipeline.storage import keys, store
+    key = keys.stage_key("track", {"filter": {"name": "B"}}, ("abc",))
+    assert key == keys.stage_key("track", {"filter": {"name": "B"}}, ("abc",))
+    from pipeline.storage import fingerprint
     monkeypatch.setattr(fingerprint, "source_fingerprint", lambda modules: "edited-filter")
-    assert store.stage_key("track", {"filter": {"name": "B"}}, ("abc",)) != key
+    assert keys.stage_key("track", {"filter": {"name": "B"}}, ("abc",)) != key
 
 
 @pytest.mark.parametrize("n", [1, 6, 20])

@@ -16,13 +16,13 @@ from hydra.utils import instantiate
 from omegaconf import OmegaConf, open_dict
 
 from filters.base import MeasurementSeries, TrackEstimate
-from pipeline import schemas
+from pipeline.storage import schemas
 from pipeline.errors import ConfigError
-from pipeline.runner import RunContext, run_experiment
+from pipeline.run.runner import RunContext, run_experiment
 from pipeline.studies.mie_los.scenario import PiecewiseAcceleration3D
-from pipeline.studies.mie_los.sensor import Radar3D, cartesian, conversion_jacobian, wrap_angle
-from pipeline.metrics import is_count
-from pipeline.tables import BinnedTable, ReportContext, format_summary
+from pipeline.sensors import Radar3D, cartesian, conversion_jacobian, wrap_angle
+from pipeline.evaluation.metrics import is_count
+from pipeline.views.tables import BinnedTable, ReportContext, format_summary
 from tests.conftest import CONF
 
 A = np.array([15.0, -10.0, -5.0])
@@ -419,7 +419,7 @@ def test_binned_table_is_generic_means_and_missing_metrics():
 
 # ---- study 001 is untouched ----------------------------------------------------------------------
 # format_summary of a study-001 summary, as printed before study 000 was added (golden text).
-# fractions below 1 print with three significant digits (pipeline.metrics.format_value)
+# fractions below 1 print with three significant digits (pipeline.evaluation.metrics.format_value)
 GOLDEN_001 = """\
 ao_vsimm_s2: 7 Monte Carlo runs
 

@@ -13,8 +13,8 @@ from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 
 from pipeline.errors import ConfigError
-from pipeline.runner import RunContext, run_experiment
-from pipeline.store import read_table
+from pipeline.run.runner import RunContext, run_experiment
+from pipeline.storage.store import read_table
 from pipeline.studies.async_bias import codec as bias_codec
 from tests.conftest import CONF
 

@@ -11,10 +11,10 @@ import pytest
 from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 
-from pipeline import schemas
+from pipeline.storage import schemas
 from pipeline.errors import ConfigError
-from pipeline.runner import RunContext, run_experiment
-from pipeline.store import read_table
+from pipeline.run.runner import RunContext, run_experiment
+from pipeline.storage.store import read_table
 from tests.conftest import CONF
 
 SHORT = ["scenario.duration=1200", "mc.runs=2", "sensors.active_intervals=[[0,300],[600,700]]"]

@@ -11,8 +11,8 @@ from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 
 from pipeline.errors import ConfigError
-from pipeline.runner import RunContext, run_experiment
-from pipeline.store import read_table
+from pipeline.run.runner import RunContext, run_experiment
+from pipeline.storage.store import read_table
 from tests.conftest import CONF
 
 SHORT = ["scenario.duration=100", "mc.runs=2", "target_model.particles=100"]
@@ -59,7 +59,7 @@ def test_a_short_run_writes_tables_summary_and_a_recording_with_the_cloud(tmp_pa
     (["target_model.particles=5"], "filters.ammpf: particles: 5 must be an integer >= 10"),
     (["study.target_prior=somewhere"], "study: target_prior: 'somewhere' is not allowed"),
     (["filters.ammpf.lw_h=1.5"], "filters.ammpf: lw_h: 1.5 must be in [0, 1)"),
-    # refused by measurement kind (pipeline.config.check_measurement_kinds) before the study's own check
+    # refused by measurement kind (pipeline.run.config.check_measurement_kinds) before the study's own check
     (["sensors=sonar_case1"], "filters.ammpf: filters.particle.MultipleModelParticleFilter declares "
                               "['sonobuoy_bearings'] measurements, but this experiment's sensor "
                               "(pipeline.studies.sonar.sensor.ActivePassiveSonar) produces 'sonar_bearing_range'"),

@@ -12,8 +12,8 @@ from omegaconf import OmegaConf
 from filters.particle import STATE_NAMES, ct_transition
 from pipeline.data import Truth
 from pipeline.studies.sonobuoy.scenario import SonobuoyField
-from pipeline.schemas import detections_from_frame, detections_to_frame, truth_from_frame, truth_to_frame
-from pipeline.seeding import run_generators
+from pipeline.storage.schemas import detections_from_frame, detections_to_frame, truth_from_frame, truth_to_frame
+from pipeline.run.seeding import run_generators
 from pipeline.studies.sonobuoy.sensor import SonobuoyBearings
 from tests.conftest import CONF
 

@@ -12,11 +12,11 @@ from pathlib import Path
 import polars as pl
 import pytest
 
-from pipeline import sweep as sweep_module
-from pipeline.recording import variant_colour
-from pipeline.store import read_table
-from pipeline.sweep import NO_WINDOW, SweepError, collect, draw_metric_figure, metric_against, select_metric
-from pipeline.sweep_recording import DEFAULT_SERIES
+from pipeline.results import sweep as sweep_module
+from pipeline.views.recording import variant_colour
+from pipeline.storage.store import read_table
+from pipeline.results.sweep import NO_WINDOW, SweepError, collect, draw_metric_figure, metric_against, select_metric
+from pipeline.views.sweep_recording import DEFAULT_SERIES
 from tests.rrd_reading import read_chunks
 from tests.test_pipeline import cli
 
@@ -209,7 +209,7 @@ def test_the_sweep_recording_has_one_line_per_job_and_variant(real_sweep):
 
 
 def test_the_aggregate_cli_rebuilds_the_sweep_files(real_sweep, tmp_path):
-    from pipeline.aggregate import main
+    from pipeline.launch.aggregate import main
 
     copy = tmp_path / "copy"
     shutil.copytree(real_sweep[0], copy)
@@ -221,7 +221,7 @@ def test_the_aggregate_cli_rebuilds_the_sweep_files(real_sweep, tmp_path):
 
 
 def test_a_failed_job_is_in_the_index_with_its_error_and_the_report_index_has_the_swept_column(tmp_path):
-    from pipeline.report import swept_columns
+    from pipeline.results.report import swept_columns
 
     proc = cli(tmp_path, "-m", "mc.runs=2,0", "scenario.steps=20", "record.enabled=false")
     assert proc.returncode == 1

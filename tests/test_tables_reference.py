@@ -11,11 +11,11 @@ import polars as pl
 import pytest
 from omegaconf import open_dict
 
-from pipeline.config import compute_reference
+from pipeline.run.config import compute_reference
 from pipeline.errors import ConfigError
-from pipeline.evaluate import Window, summary_rows
-from pipeline.runner import prepare
-from pipeline.tables import format_summary
+from pipeline.evaluation.evaluate import Window, summary_rows
+from pipeline.run.runner import prepare
+from pipeline.views.tables import format_summary
 from tests.conftest import composed
 
 ROOT = Path(__file__).resolve().parents[1]

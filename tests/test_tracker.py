@@ -91,7 +91,7 @@ def test_on_sonar_reports_it_is_the_studys_plain_ekf():
     from hydra import compose, initialize_config_dir
 
     from filters.mgekf import PlainEKF
-    from pipeline.config import build
+    from pipeline.run.config import build
     from tests.conftest import CONF
     with initialize_config_dir(version_base="1.3", config_dir=str(CONF)):
         cfg = compose("config", overrides=["experiment=sonar_case1", "scenario.duration=2000"])

@@ -14,7 +14,7 @@ from tests.test_pipeline import compose_cfg
 @pytest.mark.parametrize("engine", ["numba", "numpy"])
 @pytest.mark.parametrize("motion", ["singer", "cv"])
 def test_a_run_filtered_alone_equals_the_same_run_in_a_batch(motion, engine):
-    from pipeline.runner import prepare
+    from pipeline.run.runner import prepare
     prepared = prepare(compose_cfg("experiment=mie_los", "scenario.duration=40"))
     truth = prepared.scenario.generate(7, 3)
     view = prepared.study.track_input(truth, prepared.sensor.measure(truth, 3), prepared.sensor, 3)

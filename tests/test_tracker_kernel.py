@@ -1,4 +1,4 @@
-"""filters.kalman_kernel: the KalmanTracker's compiled scan loop against its numpy scans (the
+"""filters.tracker.kernel: the KalmanTracker's compiled scan loop against its numpy scans (the
 reference) for every motion model and both Cartesian measurement kinds, with missed scans;
 read-only measurements running the signature warm_up compiled. Batch independence, for both
 engines: tests/test_tracker_batch.py."""
@@ -10,7 +10,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from filters import kalman_kernel
+from filters.tracker import kernel as kalman_kernel
 from filters.tracker import KalmanTracker
 from tests.test_turn import radar_series
 from tests.test_turn_kernel import assert_same_to_rounding, turning_positions

@@ -16,7 +16,7 @@ from tests.extras import require_extra
 # .ci/run sets MTT_REQUIRE_TUNE=1: in CI a missing extra fails instead of skipping
 require_extra("tune", "hydra_plugins.hydra_optuna_sweeper", "optuna")
 
-from pipeline.objective import BEST_CONFIG  # noqa: E402
+from pipeline.launch.objective import BEST_CONFIG  # noqa: E402
 from tests.test_pipeline import cli  # noqa: E402
 
 pytestmark = pytest.mark.tune

@@ -13,7 +13,7 @@ import pytest
 from filters.base import MeasurementSeries
 from filters.tracker import KalmanTracker
 from filters.turn import CVCTIMM, SERIES_BELOW, coordinated_turn, turn_coefficients
-from pipeline.evaluate import nis_metrics
+from pipeline.evaluation.evaluate import nis_metrics
 
 STUDY_000_LAYOUT = ("x", "y", "z", "vx", "vy", "vz", "ax", "ay", "az")
 
@@ -243,7 +243,7 @@ def test_it_runs_in_the_studies_of_both_its_kinds_with_its_modes_labelled_in_the
     for this filter (the 3-D recording draws none)."""
     import polars as pl
 
-    from pipeline.runner import RunContext, run_experiment
+    from pipeline.run.runner import RunContext, run_experiment
     from tests.rrd_reading import entity_index, read_chunks
     from tests.test_pipeline import compose_cfg
 

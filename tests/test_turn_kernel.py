@@ -1,4 +1,4 @@
-"""filters.kalman_kernel.cv_ct_imm: the CV/CT IMM's compiled scan loop against the numpy cycle (the reference),
+"""filters.tracker.kernel.cv_ct_imm: the CV/CT IMM's compiled scan loop against the numpy cycle (the reference),
 on turns, straight legs, missed scans, varying scan periods and both measurement kinds, and
 read-only inputs (measurements read back from the stage cache) running the
 signature warm_up compiled, not a new one inside the filter's clock. Batch independence, for both
@@ -11,7 +11,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from filters import kalman_kernel
+from filters.tracker import kernel as kalman_kernel
 from filters.turn import CVCTIMM
 from tests.test_turn import circle, positions_series, radar_series
 

@@ -1,4 +1,4 @@
-"""Monte Carlo uncertainty (pipeline/uncertainty.py) against closed forms and scipy.
+"""Monte Carlo uncertainty (pipeline/evaluation/uncertainty.py) against closed forms and scipy.
 
 - a mean over runs: Student's t interval, exactly mean +- t(n-1) s / sqrt(n);
 - 0/1 per run: the exact Clopper-Pearson interval of scipy.stats.binomtest;
@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from pipeline.uncertainty import (Estimated, RunValues, WindowStatistic, bootstrap_values,
+from pipeline.evaluation.uncertainty import (Estimated, RunValues, WindowStatistic, bootstrap_values,
                                   stream_seed, summarize)
 
 
@@ -166,7 +166,7 @@ def test_bad_kinds_are_refused():
 
 
 def test_the_resampled_median_is_numpys_nanmedian_with_nans_anywhere():
-    from pipeline.uncertainty import nanmedian_last
+    from pipeline.evaluation.uncertainty import nanmedian_last
     drawn = np.random.default_rng(12).normal(size=(7, 5, 9))
     drawn[drawn > 1.0] = np.nan                               # some columns lose several values
     drawn[:, 3, :] = np.nan                                   # one column has none
@@ -210,7 +210,7 @@ def _numpy_resampled_median(items: np.ndarray, counts: np.ndarray) -> np.ndarray
 def test_the_compiled_resampled_median_equals_the_numpy_weighing_bit_for_bit():
     """Runs x steps with NaN, +inf and -inf (no weight, wherever they sort), a step with no finite
     value, bootstrap draws and jackknife leave-one-out weights: equal to the numpy formula."""
-    from pipeline.uncertainty import SortedItems
+    from pipeline.evaluation.uncertainty import SortedItems
     rng = np.random.default_rng(21)
     items = rng.gamma(2.0, size=(31, 40))
     items[rng.random(items.shape) < 0.1] = np.nan
@@ -228,12 +228,12 @@ def test_the_compiled_resampled_median_equals_the_numpy_weighing_bit_for_bit():
 
 
 def test_statistics_resampled_apart_pair_exactly_as_resampled_together():
-    """The evaluation resamples each variant when it is measured (pipeline.uncertainty.resample) and
+    """The evaluation resamples each variant when it is measured (pipeline.evaluation.uncertainty.resample) and
     pairs them at the end; the comparisons must equal the joint bootstrap's (bootstrap_values with
     every row at once) bit for bit. A count over many runs x steps is resampled in float32
     (FLOAT32_CELLS): pairs formed in float64 from a float64-cast all-runs value gave other ratio
     intervals (study 000 at 2500 runs: 12 comparison rows, e.g. 12.890581 against 12.891265)."""
-    from pipeline.uncertainty import FLOAT32_CELLS, resample
+    from pipeline.evaluation.uncertainty import FLOAT32_CELLS, resample
 
     rng = np.random.default_rng(11)
     runs, steps = 120, FLOAT32_CELLS // 120 + 10                  # over the float32 threshold

@@ -1,5 +1,5 @@
 """Issue 18 through a real run: the summary's intervals, the per-run and comparisons tables, null
-(not NaN) where a per-step metric is undefined, and the tables pipeline.query serves."""
+(not NaN) where a per-step metric is undefined, and the tables pipeline.results.query serves."""
 
 from __future__ import annotations
 
@@ -9,8 +9,8 @@ import numpy as np
 import polars as pl
 import pytest
 
-from pipeline.query import query
-from pipeline.store import read_table
+from pipeline.results.query import query
+from pipeline.storage.store import read_table
 from tests.test_pipeline import run_in_process
 
 

@@ -9,7 +9,7 @@ Imported only where Stone Soup is used (it imports Stone Soup at the top).
   (range, azimuth, elevation) is ``CartesianToElevationBearingRange``'s (elevation, bearing, range)
   and a 2-D radar's (range, azimuth) is ``CartesianToBearingRange``'s (bearing, range). The angle
   conventions are the same (azimuth atan2(dy, dx) from +x toward +y, elevation from the x-y plane:
-  pipeline/studies/mie_los/sensor.py), so only the order and the angle types differ.
+  pipeline/sensors.py), so only the order and the angle types differ.
 - **Kinds**: the measurement kind (filters.base.MEASUREMENT_KINDS) a Stone Soup measurement model
   takes follows from its type (``kind_of_model``).
 - **Randomness**: ``reseed`` gives every random state of a Stone Soup object graph (its models'

@@ -76,7 +76,7 @@ def load_run(run_dir: str | Path, run: int = 0, variants: Sequence[str] | None =
     ``x_compensated``, the bias-compensated track, with ``P_compensated``).
     """
     require_stonesoup()
-    from pipeline.store import read_table
+    from pipeline.storage.store import read_table
     run_dir = Path(run_dir)
     if not (run_dir / "truth.parquet").is_file():
         raise FileNotFoundError(f"{run_dir}: not a run folder (no truth.parquet)")
@@ -123,10 +123,9 @@ def _truths(df: pl.DataFrame, state_names: tuple[str, ...]) -> tuple[set, dict[i
 def _sensor_positions(run_dir: Path) -> Any:
     """sensor id -> position (a radar's), from the run's sensor rebuilt from its config.yaml: a network's
     ``positions`` (S, d), a single sensor's ``position``; None where the sensor has none (positions)."""
-    from omegaconf import OmegaConf
-
-    from pipeline.config import build, check_targets
-    cfg = OmegaConf.load(run_dir / "config.yaml")
+    from pipeline.run.config import build, check_targets
+    from pipeline.run.stored import stored_config
+    cfg = stored_config(run_dir)
     check_targets(cfg)                                  # a config is data: only allowed classes are built
     sensor = build(cfg.sensors, "sensors")
     many = getattr(sensor, "positions", None)

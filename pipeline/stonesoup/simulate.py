@@ -26,7 +26,7 @@ from pipeline.stonesoup import require_stonesoup
 
 
 def _run_sequence(seed: int, stage: str, run: int) -> np.random.SeedSequence:
-    """Run r's seed sequence of a stage (pipeline.seeding.run_generators draws from the same)."""
+    """Run r's seed sequence of a stage (pipeline.run.seeding.run_generators draws from the same)."""
     return np.random.SeedSequence(entropy=seed, spawn_key=(zlib.crc32(stage.encode()), run))
 
 

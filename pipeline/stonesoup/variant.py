@@ -1,7 +1,7 @@
 """A filter variant made of Stone Soup components: ``pipeline.stonesoup.variant.StoneSoupFilter``.
 
 The variant's YAML names Stone Soup classes with ``_target_`` (they are allowed without listing:
-pipeline.config.COMPONENT_PACKAGES): a transition model, a measurement model, a predictor and an
+pipeline.run.config.COMPONENT_PACKAGES): a transition model, a measurement model, a predictor and an
 updater given as ``_partial_: true`` (this class hands them their models), optionally an initiator or
 a prior. The measurement model's type says which measurements the variant takes
 (``LinearGaussian``: position_xy; ``CartesianToElevationBearingRange``: range_azimuth_elevation),

@@ -27,12 +27,12 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from pipeline.bounds import PerTruth
-from pipeline.evaluate import consistency, resolved, summary_row
-from pipeline.uncertainty import RunValues, WindowStatistic
-from pipeline.metrics import BAND, Metric, nees, register, unit_of
+from pipeline.evaluation.bounds import PerTruth
+from pipeline.evaluation.evaluate import consistency, resolved, summary_row
+from pipeline.evaluation.uncertainty import RunValues, WindowStatistic
+from pipeline.evaluation.metrics import BAND, Metric, nees, register, unit_of
 from pipeline.studies.adsb.flight import MANEUVER_NAMES
-from pipeline.track import SingleTargetStudy
+from pipeline.studies.single_target import SingleTargetStudy
 
 POSITION_VELOCITY = ("x", "y", "z", "vx", "vy", "vz")
 
@@ -52,7 +52,7 @@ register(
 
 def radar_position_rmse(truth, sensor, first_scan: int) -> float | None:
     """sqrt(mean over runs and scans >= first_scan of trace(J R_p J')), J at the true (r, az, el)."""
-    from pipeline.studies.mie_los.sensor import conversion_jacobian, spherical
+    from pipeline.sensors import conversion_jacobian, spherical
     if not (hasattr(sensor, "position") and hasattr(sensor, "noise_covariance")):
         return None
     names = truth.state_names
@@ -83,7 +83,7 @@ class FlightStudy(SingleTargetStudy):
     def record(self, path, inputs) -> None:
         """Study 000's 3-D recording plus the maneuver class on the timeline and a map of run 0 (the
         truth's ``site`` label gives the ENU origin's latitude, longitude and height)."""
-        from pipeline.recording import write_recording
+        from pipeline.views.recording import write_recording
         truth = inputs.truth
         to_geodetic = None
         if "site" in truth.labels:

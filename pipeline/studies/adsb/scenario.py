@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.checks import finite, non_negative, positive
+from pipeline.run.checks import finite, non_negative, positive
 from pipeline.data import Truth
 from pipeline.studies.adsb.flight import MANEUVER_NAMES, STATE_NAMES, Flight, build_flight
 from pipeline.studies.adsb.reading import find_flight_file
@@ -87,7 +87,7 @@ class RecordedFlight:
         logging.getLogger("pipeline").info("[scenario] %s", self.flight.describe())
 
     def data_fingerprint(self) -> str:
-        """SHA-256 of the flight's file: part of the scenario stage's cache key (pipeline.stages), so
+        """SHA-256 of the flight's file: part of the scenario stage's cache key (pipeline.run.stages), so
         an edited or replaced file under the same name is never served from the cache."""
         return hashlib.sha256(Path(self.source).read_bytes()).hexdigest()
 

@@ -14,7 +14,7 @@ from dataclasses import replace
 import numpy as np
 
 from pipeline.data import Detections, Truth
-from pipeline.studies.mie_los.sensor import Radar3D
+from pipeline.sensors import Radar3D
 
 
 class HorizontalRadar(Radar3D):

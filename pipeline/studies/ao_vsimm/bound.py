@@ -13,7 +13,7 @@ import numpy as np
 from filters.bounds import posterior_crlb
 from filters.models import (acceleration_input_gain, constant_velocity_transition, position_measurement_matrix,
                             two_point_initialisation)
-from pipeline.bounds import positive_parameter, scan_interval
+from pipeline.evaluation.bounds import positive_parameter, scan_interval
 from pipeline.data import Truth
 
 

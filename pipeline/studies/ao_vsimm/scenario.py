@@ -7,9 +7,9 @@ from typing import Sequence
 import numpy as np
 
 from filters.models import acceleration_input_gain, constant_velocity_transition
-from pipeline.checks import non_negative
+from pipeline.run.checks import non_negative
 from pipeline.data import Truth
-from pipeline.seeding import run_generators
+from pipeline.run.seeding import run_generators
 
 
 class PiecewiseAccelerationScenario:

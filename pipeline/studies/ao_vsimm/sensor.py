@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from pipeline.checks import positive
+from pipeline.run.checks import positive
 from pipeline.data import Detections, Truth
-from pipeline.seeding import run_generators
+from pipeline.run.seeding import run_generators
 
 
 class PositionSensor:

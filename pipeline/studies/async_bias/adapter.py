@@ -24,13 +24,13 @@ import numpy as np
 
 from filters.bias import BIAS_NAMES, BIAS_UNITS, BiasRegistrationResult, RadarReports, TrackStart
 from pipeline.contract import RecordingInputs, Study
-from pipeline.metrics import BAND, Metric, lookup, nees, register, register_family, unit_of
+from pipeline.evaluation.metrics import BAND, Metric, lookup, nees, register, register_family, unit_of
 from pipeline.studies.async_bias.codec import bias_estimates_from_frame, bias_estimates_to_frame
 from pipeline.data import Detections, Truth
 from pipeline.errors import ConfigError
-from pipeline.seeding import run_generators
-from pipeline.evaluate import consistency, consistency_metrics, quiet_nanmean
-from pipeline.uncertainty import RunValues
+from pipeline.run.seeding import run_generators
+from pipeline.evaluation.evaluate import consistency, consistency_metrics, quiet_nanmean
+from pipeline.evaluation.uncertainty import RunValues
 
 
 class BiasRegistrationStudy(Study):
@@ -123,7 +123,7 @@ class BiasRegistrationStudy(Study):
     def fault_flags(result: BiasRegistrationResult, truth: Truth, checks) -> np.ndarray:
         """(R, reports) fault masks of the bias estimate and of every kept track, biased and
         compensated (no NEES test: the bias truth lives in the sensor, the tracks' in the truth)."""
-        from pipeline.faults import fault_flags
+        from pipeline.evaluation.faults import fault_flags
         flags = np.zeros(result.track_state.shape[:2], dtype=np.uint8)
         if np.isfinite(result.bias).any():
             flags |= fault_flags(result.bias, result.bias_covariance, checks)
@@ -229,7 +229,7 @@ def target_mean_nis(name: str, nis_sum: np.ndarray, dof: np.ndarray) -> dict[str
     return {key: np.where(ok, values / np.where(ok, targets_per_run, 1.0), np.nan) for key, values in band.items()}
 
 
-# the study's metric families (radar n, target m), pipeline.metrics
+# the study's metric families (radar n, target m), pipeline.evaluation.metrics
 register(Metric("bias_nees", "1 (chi2 dof = 4 per radar)", "-", dof="4 per radar"),
          Metric("bias_nees_lower", BAND, "-"), Metric("bias_nees_upper", BAND, "-"))
 register_family(r"bias_rmse_(?P<component>[a-z_]+)_s(?P<sensor>\d+)",

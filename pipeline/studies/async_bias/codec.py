@@ -1,7 +1,7 @@
 """Study 002's estimate table: the stacked bias estimate and every kept target's local tracks.
 
 The table codec of ``BiasRegistrationStudy`` (``estimate_to_frame`` / ``estimate_from_frame``),
-built on the shared helpers of ``pipeline.schemas``.
+built on the shared helpers of ``pipeline.storage.schemas``.
 """
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ import numpy as np
 import polars as pl
 
 from filters.bias import BIAS_NAMES, STATE_NAMES as BIAS_STUDY_STATE, BiasRegistrationResult
-from pipeline.schemas import META_NAMES, META_UNITS, TableError, array_column, run_step_grid, table_metadata
+from pipeline.storage.schemas import META_NAMES, META_UNITS, TableError, array_column, run_step_grid, table_metadata
 
 
 def bias_estimates_to_frame(res: BiasRegistrationResult) -> tuple[pl.DataFrame, dict[str, str]]:

@@ -54,9 +54,9 @@ import numpy as np
 
 from filters.bias import BIAS_NAMES, BiasRegistrationResult
 from pipeline.data import Detections, Truth
-from pipeline.blueprint_parts import (fit_titles, key_view, log_path, no_legend, path_overrides,
+from pipeline.views.blueprints import (fit_titles, key_view, log_path, no_legend, path_overrides,
     whole_run as whole_run_axis)
-from pipeline.recording import (log_north_up, atomic_recording, checked_record_runs, covariance_ellipses, FRAMES_PATH,
+from pipeline.views.recording import (log_north_up, atomic_recording, checked_record_runs, covariance_ellipses, FRAMES_PATH,
     FUTURE_ALPHA, lighter_colour, log_config, log_keys, log_metric_series, metric_time_series, NORTH_UP_FRAME,
     path_part, PATH_SAFE, time_columns, TRUTH_COLOUR, variant_colour, VARIANT_KEY, xy_index)
 
@@ -70,7 +70,7 @@ BIAS_LABELS = {"range_offset": "range offset b_r", "azimuth_offset": "azimuth of
                "range_scale": "range scale ε_r", "azimuth_scale": "azimuth scale ε_θ"}
 BIAS_SYMBOLS = {"range_offset": "b_r", "azimuth_offset": "b_θ", "range_scale": "ε_r", "azimuth_scale": "ε_θ"}
 KINDS = ("biased", "compensated")
-# radars in colours no variant has (pipeline.colours: blue, orange, green, red, ... are the variants')
+# radars in colours no variant has (pipeline.views.colours: blue, orange, green, red, ... are the variants')
 _RADAR_COLOURS = [(245, 215, 70), (235, 100, 235), (120, 235, 215), (255, 160, 130)]
 _TIME_TOLERANCE = 1e-6                   # [s] a report time matches a truth time this close
 _BIAS_RMSE = re.compile(r"^bias_rmse_(?P<component>.+)_s(?P<radar>\d+)$")
@@ -104,7 +104,7 @@ def _grid_steps(grid: np.ndarray, times: np.ndarray, what: str) -> np.ndarray:
 
 def _has_bias(est: BiasRegistrationResult, runs: Sequence[int]) -> bool:
     """Whether the variant estimates biases, read off the recorded ``runs`` (the only ones a recording
-    holds: pipeline.estimates)."""
+    holds: pipeline.storage.estimates)."""
     return any(bool(np.isfinite(np.asarray(est.bias[r])).any()) for r in runs)
 
 

@@ -11,7 +11,7 @@ import numpy as np
 
 from filters.bias import STATE_NAMES, dcwna_process_noise  # seed 002 eqs 5, 43, shared with the filters
 from pipeline.data import Truth
-from pipeline.seeding import run_generators
+from pipeline.run.seeding import run_generators
 
 
 class ConstantVelocityGrid:

@@ -17,7 +17,7 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from pipeline.data import Detections, Truth
-from pipeline.seeding import run_generators
+from pipeline.run.seeding import run_generators
 
 MEASUREMENT_NAMES = ("range", "azimuth")
 MEASUREMENT_UNITS = ("m", "rad")

@@ -12,7 +12,7 @@ import numpy as np
 from filters.bounds import posterior_crlb
 from filters.coordinates import converted_covariance, line_of_sight_angles
 from filters.models import singer_process_noise, singer_transition, two_point_start
-from pipeline.bounds import positive_parameter, scan_interval
+from pipeline.evaluation.bounds import positive_parameter, scan_interval
 from pipeline.data import Truth
 
 

@@ -9,9 +9,9 @@ from typing import Sequence
 
 import numpy as np
 
-from pipeline.checks import non_negative
+from pipeline.run.checks import non_negative
 from pipeline.data import Truth
-from pipeline.seeding import run_generators
+from pipeline.run.seeding import run_generators
 
 STATE_NAMES = ("x", "y", "z", "vx", "vy", "vz", "ax", "ay", "az")
 

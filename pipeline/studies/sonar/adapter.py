@@ -20,14 +20,14 @@ import numpy as np
 
 from filters.bounds import posterior_crlb
 from filters.mgekf import STATE_NAMES, SonarReports, jacobian_rows, relative_motion_model
-from pipeline import schemas
+from pipeline.storage import schemas
 from pipeline.contract import RecordingInputs, Study
-from pipeline.metrics import Metric, register
+from pipeline.evaluation.metrics import Metric, register
 from pipeline.data import Detections, Truth
 from pipeline.errors import ConfigError
-from pipeline.bounds import PerTruth
-from pipeline.evaluate import per_step_metrics, quiet_nanmean, summary_row
-from pipeline.uncertainty import RunValues, WindowStatistic
+from pipeline.evaluation.bounds import PerTruth
+from pipeline.evaluation.evaluate import per_step_metrics, quiet_nanmean, summary_row
+from pipeline.evaluation.uncertainty import RunValues, WindowStatistic
 
 register(
     Metric("position_rmse_x", "m", quantity="position_rmse", component="x"),

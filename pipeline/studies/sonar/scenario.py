@@ -12,7 +12,7 @@ from typing import Sequence
 
 import numpy as np
 
-from pipeline.checks import finite, positive, whole_steps
+from pipeline.run.checks import finite, positive, whole_steps
 from pipeline.data import Truth
 
 STATE_NAMES = ("x", "y", "vx", "vy", "ax", "ay")
@@ -65,7 +65,7 @@ class SonarEncounter:
       "ownship" (R, K, 1, 4): own-ship (x, y, vx, vy) in the world frame;
       "ownship_acceleration" (R, K, 1, 2): own-ship u(k) (0 on the last step);
       "target_world" (R, K, 1, 4): target (x, y, vx, vy) in the world frame. (Not "target": the
-      truth table already has a "target" column, the object index; see pipeline.schemas.)
+      truth table already has a "target" column, the object index; see pipeline.storage.schemas.)
 
     Parameters
     ----------

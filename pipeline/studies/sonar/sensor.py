@@ -11,10 +11,10 @@ from typing import Sequence
 
 import numpy as np
 
-from pipeline.checks import non_negative
+from pipeline.run.checks import non_negative
 from pipeline.data import Detections, Truth
-from pipeline.seeding import run_generators
-from pipeline.studies.mie_los.sensor import wrap_angle
+from pipeline.run.seeding import run_generators
+from pipeline.sensors import wrap_angle
 
 MEASUREMENT_NAMES = ("bearing", "range")
 MEASUREMENT_UNITS = ("rad", "m")

@@ -23,15 +23,15 @@ from typing import Sequence
 import numpy as np
 
 from filters.particle import MODE_NAMES, NOISE_GAINS, STATE_NAMES, BuoyReports, MultipleModelParticleFilter
-from pipeline import schemas
+from pipeline.storage import schemas
 from pipeline.contract import RecordingInputs, Study
-from pipeline.metrics import BAND, Metric, nees, register
+from pipeline.evaluation.metrics import BAND, Metric, nees, register
 from pipeline.data import Detections, Truth
 from pipeline.errors import ConfigError
-from pipeline.seeding import run_generators
-from pipeline.bounds import PerTruth
-from pipeline.evaluate import consistency, nis_metrics, quiet_nanmean, summary_row
-from pipeline.uncertainty import RunValues, WindowStatistic
+from pipeline.run.seeding import run_generators
+from pipeline.evaluation.bounds import PerTruth
+from pipeline.evaluation.evaluate import consistency, nis_metrics, quiet_nanmean, summary_row
+from pipeline.evaluation.uncertainty import RunValues, WindowStatistic
 
 register(
     Metric("position_median_error", "m"), Metric("buoy_position_rmse", "m"), Metric("buoy_position_median_error", "m"),

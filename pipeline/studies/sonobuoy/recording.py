@@ -60,13 +60,13 @@ import numpy as np
 from filters.base import TrackEstimate
 from filters.particle import MODE_NAMES
 from pipeline.data import Detections, Truth
-from pipeline.blueprint_parts import (fit_titles, key_view, log_path, no_legend, path_overrides,
+from pipeline.views.blueprints import (fit_titles, key_view, log_path, no_legend, path_overrides,
     whole_run as whole_run_axis)
-from pipeline.colours import MODE_COLOURS
-from pipeline.recording import (log_north_up, atomic_recording, checked_record_runs, covariance_ellipses,
+from pipeline.views.colours import MODE_COLOURS
+from pipeline.views.recording import (log_north_up, atomic_recording, checked_record_runs, covariance_ellipses,
     FUTURE_ALPHA, lighter_colour, log_config, log_keys, log_metric_series, metric_time_series, NORTH_UP_FRAME,
     path_part, PATH_SAFE, time_columns, track_radius, TRUTH_COLOUR, variant_colour, VARIANT_KEY, xy_index)
-from pipeline.metrics import axis_unit_of
+from pipeline.evaluation.metrics import axis_unit_of
 
 if TYPE_CHECKING:  # pragma: no cover
     import polars as pl
@@ -77,7 +77,7 @@ CLUTTER = -1                       # Detections.target of a clutter return
 BEARING_LINE_SCALE = 1.3           # a bearing line is 1.3 x the true range long
 MAX_PARTICLES = 200                # at most this many particles of a kept cloud are drawn per scan
 MODE_LABELS = {"cv": "CV", "ccw": "left turn (Ω > 0)", "cw": "right turn (Ω < 0)"}
-# the modes' colours are pipeline.colours.MODE_COLOURS (the report's mode figure uses them too)
+# the modes' colours are pipeline.views.colours.MODE_COLOURS (the report's mode figure uses them too)
 PLOTTED_METRICS = ("position_rmse", "position_median_error", "buoy_position_rmse", "nees_position")
 _NOMINAL_COLOUR = (160, 160, 160, 120)
 _CLUTTER_COLOUR = (235, 70, 70, 150)

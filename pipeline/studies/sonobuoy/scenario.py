@@ -14,9 +14,9 @@ import numpy as np
 
 # eqs 3, 4, 6 and the state layout, shared with the filters
 from filters.particle import BUOYS, NOISE_GAINS, STATE_NAMES, ct_transition, cv_transition, noise_gain
-from pipeline.checks import non_negative, positive, whole_steps
+from pipeline.run.checks import non_negative, positive, whole_steps
 from pipeline.data import Truth
-from pipeline.seeding import run_generators
+from pipeline.run.seeding import run_generators
 
 CV, COUNTER_CLOCKWISE, CLOCKWISE = 1, 2, 3      # the seed's mode numbers by its FORMULA (see SonobuoyField)
 TURN_DIRECTIONS = {"right": -1.0, "left": 1.0}  # sign of Omega (Omega > 0 turns counter-clockwise)

@@ -13,10 +13,10 @@ from typing import Sequence
 import numpy as np
 
 from filters.particle import BUOYS, STATE_NAMES, bearings  # eqs 8-9, shared with the filters
-from pipeline.checks import non_negative
+from pipeline.run.checks import non_negative
 from pipeline.data import Detections, Truth
-from pipeline.seeding import run_generators
-from pipeline.studies.mie_los.sensor import wrap_angle
+from pipeline.run.seeding import run_generators
+from pipeline.sensors import wrap_angle
 
 MEASUREMENT_NAMES = ("bearing",)
 MEASUREMENT_UNITS = ("rad",)

@@ -1,0 +1,2 @@
+"""Tables and their schemas, the checksummed stage cache and atomic files, the code fingerprint
+that keys it, and how a job holds its variants' estimates."""
