@@ -14,7 +14,8 @@ from omegaconf import OmegaConf
 
 from filters.base import MeasurementSeries
 from filters.imm import AOVSIMM, FSIMM
-from pipeline.views.recording import recording_id, write_recording
+from pipeline.views.recording import recording_id
+from pipeline.views.single_target import write_recording
 from pipeline.studies.ao_vsimm.sensor import PositionSensor
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -13,7 +13,7 @@ import polars as pl
 import pytest
 
 from pipeline.results import sweep as sweep_module
-from pipeline.views.recording import variant_colour
+from pipeline.views.colours import variant_colour
 from pipeline.storage.store import read_table
 from pipeline.results.sweep import NO_WINDOW, SweepError, collect, draw_metric_figure, metric_against, select_metric
 from pipeline.views.sweep_recording import DEFAULT_SERIES

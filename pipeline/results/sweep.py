@@ -302,7 +302,7 @@ def format_glance(sweep: Sweep, width: int = 60) -> str:
 # ---- a metric against the swept values ----------------------------------------------------------
 def variant_order(frame: pl.DataFrame) -> list[str]:
     """Variant keys in the order the jobs list them (job order, then each job's own order): the
-    order that gives each variant its colour (pipeline.views.recording.variant_colour), as the run
+    order that gives each variant its colour (pipeline.views.colours.variant_colour), as the run
     recordings do when every job runs the same variants."""
     if frame.height == 0 or "variant_key" not in frame.columns:
         return []

@@ -69,7 +69,7 @@ class SingleTargetStudy(Study):
         return out | bound_metrics(self.bound, truth, sensor, out["position_rmse"])
 
     def record(self, path, inputs: RecordingInputs) -> None:
-        from pipeline.views.recording import write_recording
+        from pipeline.views.single_target import write_recording
         # a sensor with a position (e.g. the 3-D radar: polar detections relative to it) tells the
         # recording where it sits
         where = getattr(inputs.sensor, "position", None)

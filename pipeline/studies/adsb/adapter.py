@@ -83,7 +83,7 @@ class FlightStudy(SingleTargetStudy):
     def record(self, path, inputs) -> None:
         """Study 000's 3-D recording plus the maneuver class on the timeline and a map of run 0 (the
         truth's ``site`` label gives the ENU origin's latitude, longitude and height)."""
-        from pipeline.views.recording import write_recording
+        from pipeline.views.single_target import write_recording
         truth = inputs.truth
         to_geodetic = None
         if "site" in truth.labels:

@@ -56,9 +56,10 @@ from filters.bias import BIAS_NAMES, BiasRegistrationResult
 from pipeline.data import Detections, Truth
 from pipeline.views.blueprints import (fit_titles, key_view, log_path, no_legend, path_overrides,
     whole_run as whole_run_axis)
-from pipeline.views.recording import (log_north_up, atomic_recording, checked_record_runs, covariance_ellipses, FRAMES_PATH,
-    FUTURE_ALPHA, lighter_colour, log_config, log_keys, log_metric_series, metric_time_series, NORTH_UP_FRAME,
-    path_part, PATH_SAFE, time_columns, TRUTH_COLOUR, variant_colour, VARIANT_KEY, xy_index)
+from pipeline.views.recording import (log_north_up, atomic_recording, checked_record_runs, covariance_ellipses,
+    FRAMES_PATH, FUTURE_ALPHA, log_config, log_keys, log_metric_series, metric_time_series, NORTH_UP_FRAME,
+    path_part, PATH_SAFE, time_columns, VARIANT_KEY, xy_index)
+from pipeline.views.colours import lighter as lighter_colour, TRUTH_COLOUR, variant_colour
 
 if TYPE_CHECKING:  # pragma: no cover
     import polars as pl

@@ -62,9 +62,10 @@ from pipeline.evaluation.metrics import axis_unit_of
 from pipeline.data import Detections, Truth
 from pipeline.views.blueprints import (fit_title, fit_titles, key_view, log_path, no_legend, path_overrides,
     whole_run as whole_run_axis)
-from pipeline.views.recording import (log_north_up, atomic_recording, checked_record_runs, covariance_ellipses, FRAMES_PATH,
-    FUTURE_ALPHA, log_config, log_keys, log_metric_series, metric_time_series, NORTH_UP_FRAME, path_part, PATH_SAFE,
-    target_frame, time_columns, track_radius, TRUTH_COLOUR, variant_colour, VARIANT_KEY, xy_index)
+from pipeline.views.recording import (log_north_up, atomic_recording, checked_record_runs, covariance_ellipses,
+    FRAMES_PATH, FUTURE_ALPHA, log_config, log_keys, log_metric_series, metric_time_series, NORTH_UP_FRAME,
+    path_part, PATH_SAFE, target_frame, time_columns, track_radius, VARIANT_KEY, xy_index)
+from pipeline.views.colours import TRUTH_COLOUR, variant_colour
 
 if TYPE_CHECKING:  # pragma: no cover
     import polars as pl

@@ -64,8 +64,9 @@ from pipeline.views.blueprints import (fit_titles, key_view, log_path, no_legend
     whole_run as whole_run_axis)
 from pipeline.views.colours import MODE_COLOURS
 from pipeline.views.recording import (log_north_up, atomic_recording, checked_record_runs, covariance_ellipses,
-    FUTURE_ALPHA, lighter_colour, log_config, log_keys, log_metric_series, metric_time_series, NORTH_UP_FRAME,
-    path_part, PATH_SAFE, time_columns, track_radius, TRUTH_COLOUR, variant_colour, VARIANT_KEY, xy_index)
+    FUTURE_ALPHA, log_config, log_keys, log_metric_series, metric_time_series, NORTH_UP_FRAME, path_part, PATH_SAFE,
+    time_columns, track_radius, VARIANT_KEY, xy_index)
+from pipeline.views.colours import lighter as lighter_colour, TRUTH_COLOUR, variant_colour
 from pipeline.evaluation.metrics import axis_unit_of
 
 if TYPE_CHECKING:  # pragma: no cover
