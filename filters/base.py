@@ -115,6 +115,8 @@ MEASUREMENT_KINDS: dict[str, str] = {
     "sonar_bearing_range": "a moving own-ship sonar's bearings, with range while active (filters.mgekf.SonarReports)",
     "sonobuoy_bearings": "drifting sonobuoys' bearings in clutter and an observer's bearings to the buoys "
                          "(filters.particle.BuoyReports)",
+    "position_xy_sets": "unlabelled Cartesian position detections of an unknown number of targets in clutter, "
+                        "padded over runs and scans (filters.multitarget.DetectionSets)",
 }
 # kinds carried by a MeasurementSeries: what a filter that declares nothing (the Estimator protocol) takes
 SERIES_KINDS = frozenset({"position_xy", "range_azimuth_elevation"})
