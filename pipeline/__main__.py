@@ -10,7 +10,6 @@ value for the sweeper; a job without one (failed, or NaN) returns None (pipeline
 from __future__ import annotations
 
 import logging
-import shutil
 import sys
 from pathlib import Path
 
@@ -45,7 +44,7 @@ def _run(cfg: DictConfig, hc: DictConfig, multirun: bool, ctx: RunContext) -> fl
         outcome = run_experiment(cfg, ctx)
         objective = objective_value(outcome.summary, cfg.get("objective"))   # a missing row fails the job
     except PipelineError as exc:
-        if multirun or (ctx.run_dir / "status.json").exists():
+        if multirun or ctx.started:
             _fail(ctx, cfg, str(exc), None)               # the sweep lists the job; a started run says why
         else:
             _remove_unused_run_folder(ctx.run_dir, ctx.artifacts)   # refused before any work: nothing is written
@@ -56,7 +55,8 @@ def _run(cfg: DictConfig, hc: DictConfig, multirun: bool, ctx: RunContext) -> fl
         return None
     except Exception as exc:  # a bug or a numerical failure: keep the sweep alive, keep the evidence
         message, detail = describe_exception(exc)
-        _fail(ctx, cfg, message, detail)
+        if multirun or ctx.started or not _folder_was_there(ctx.run_dir):   # never over another run's files
+            _fail(ctx, cfg, message, detail)
         if not multirun:
             raise
         log.error("job %s failed: %s (traceback in %s)", hc.job.num, message, ctx.run_dir / "status.json")
@@ -73,23 +73,18 @@ def _run(cfg: DictConfig, hc: DictConfig, multirun: bool, ctx: RunContext) -> fl
 
 
 def _remove_unused_run_folder(run_dir: Path, artifacts: Path) -> None:
-    """Remove the run folder Hydra made for a single run refused before any stage, if it holds only
-    Hydra's own files (.hydra/ with the composed config, the job's log), and then its parents up to
-    ``artifacts`` while they are empty: a refused command leaves nothing behind."""
-    hydra_files = {"config.yaml", "hydra.yaml", "overrides.yaml"}
-    names = {p.name for p in run_dir.iterdir()} if run_dir.is_dir() else set()
-    hydra = run_dir / ".hydra"
-    if any(n != ".hydra" and not n.endswith(".log") for n in names) or \
-            (hydra.is_dir() and any(p.name not in hydra_files for p in hydra.iterdir())):
-        return
-    shutil.rmtree(run_dir, ignore_errors=True)
-    folder = run_dir.parent
-    try:
-        while folder.resolve() != artifacts.resolve() and folder.resolve().is_relative_to(artifacts.resolve()):
-            folder.rmdir()                 # only if empty
-            folder = folder.parent
-    except OSError:
-        pass
+    """Remove what a single run refused before any stage made: Hydra's own files (.hydra/ with the
+    composed config, the job's log) and the folders it created for them while they are empty; a
+    folder that was there before keeps every file it held (pipeline.launch.folders)."""
+    from pipeline.launch import folders
+    folders.remove_what_the_job_made(run_dir, artifacts, folders.BEFORE)
+
+
+def _folder_was_there(run_dir: Path) -> bool:
+    """Whether a single run's folder existed before this job (its files are not this job's to replace)."""
+    from pipeline.launch import folders
+    before = folders.BEFORE
+    return before is None or before.made_from is None
 
 
 def _fail(ctx: RunContext, cfg: DictConfig, message: str, detail: str | None) -> None:

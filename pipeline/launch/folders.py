@@ -6,12 +6,18 @@ path under a file, a read-only or full disk give one paragraph and exit 2, not H
 from its own ``mkdir``. It also records that Hydra got that far (``COMPOSED``): an exit 1 before it
 is Hydra refusing the command line (an unknown key, a missing config), which ``python -m pipeline``
 then reports with the same exit code as every other input error, 2.
+
+And it notes what the run folder held before Hydra made it (``BEFORE``): a single run refused before
+any stage removes what this job made there, Hydra's ``.hydra/`` files and its log, and nothing else
+(``remove_what_the_job_made``); a folder that was there before stays, with every file it held.
 """
 
 from __future__ import annotations
 
+import os
 import sys
 import tempfile
+from dataclasses import dataclass
 from pathlib import Path
 
 from hydra.experimental.callback import Callback
@@ -20,6 +26,71 @@ from omegaconf import DictConfig
 from pipeline.errors import cannot_write
 
 COMPOSED = False      # set in this process once Hydra has composed the config and called the callbacks
+HYDRA_FILES = (".hydra/config.yaml", ".hydra/hydra.yaml", ".hydra/overrides.yaml")   # what Hydra saves in a job
+
+
+@dataclass(frozen=True)
+class FolderBefore:
+    """What a single run's folder was before Hydra made it: ``run_dir`` (absolute), ``made_from`` the
+    outermost folder the job creates for it (``run_dir`` or one of its parents; None if ``run_dir``
+    was there), and ``entries``, the relative paths it held (one level into ``.hydra/``)."""
+
+    run_dir: Path
+    made_from: Path | None
+    entries: frozenset[str]
+
+
+BEFORE: FolderBefore | None = None    # set by OutputFolders.on_run_start, before any folder is made
+
+
+def folder_before(run_dir: Path) -> FolderBefore:
+    """What ``run_dir`` holds now (``FolderBefore``)."""
+    run_dir = Path(os.path.abspath(run_dir))
+    if not os.path.lexists(run_dir):
+        made_from = run_dir
+        while not os.path.lexists(made_from.parent) and made_from.parent != made_from:
+            made_from = made_from.parent
+        return FolderBefore(run_dir, made_from, frozenset())
+    entries: set[str] = set()
+    if run_dir.is_dir():
+        for p in run_dir.iterdir():
+            entries.add(p.name)
+            if p.name == ".hydra" and p.is_dir() and not p.is_symlink():
+                entries.update(f".hydra/{q.name}" for q in p.iterdir())
+    return FolderBefore(run_dir, None, frozenset(entries))
+
+
+def remove_what_the_job_made(run_dir: Path, artifacts: Path, before: FolderBefore | None) -> None:
+    """Remove what a single run refused before any stage left in ``run_dir``: Hydra's ``.hydra/``
+    files and the job's ``*.log``, those not there before (``before``) and nothing else, then every
+    folder the job made for it (``run_dir`` and its parents up to ``before.made_from``, never
+    ``artifacts``) while it is empty. Without ``before`` (Hydra never called OutputFolders) nothing is
+    removed: what the job made cannot be told from what was there."""
+    run_dir = Path(os.path.abspath(run_dir))
+    if before is None or before.run_dir != run_dir or not run_dir.is_dir() or run_dir.is_symlink():
+        return
+    made = [name for name in HYDRA_FILES if name not in before.entries]
+    made += [p.name for p in run_dir.iterdir() if p.name.endswith(".log") and p.name not in before.entries]
+    for name in made:
+        path = run_dir / name
+        if path.is_file() and not path.is_symlink():
+            path.unlink()
+    folders = [run_dir / ".hydra"] if ".hydra" not in before.entries else []
+    if before.made_from is not None:          # the job made run_dir and the parents up to made_from
+        folder = run_dir
+        folders.append(folder)
+        stop = Path(os.path.abspath(artifacts))
+        while folder != before.made_from and folder.parent != folder:
+            folder = folder.parent
+            if folder == stop:
+                break
+            folders.append(folder)
+    for folder in folders:
+        try:
+            folder.rmdir()                    # only if empty: anything else written there stays
+        except OSError:
+            if folder != run_dir / ".hydra":
+                return
 
 
 def check_writable(folder: Path, key: str, value: object) -> None:
@@ -44,6 +115,9 @@ class OutputFolders(Callback):
         check_writable((cwd / output).parent, "paths.artifacts", artifacts)
 
     def on_run_start(self, config: DictConfig, **kwargs) -> None:
+        global BEFORE
+        # before anything is made (check_writable makes the run folder's parent): what was there
+        BEFORE = folder_before(Path(str(config.hydra.runtime.cwd)) / str(config.hydra.run.dir))
         self._check(config, str(config.hydra.run.dir))
 
     def on_multirun_start(self, config: DictConfig, **kwargs) -> None:

@@ -60,6 +60,7 @@ class RunContext:
     overrides: list[str]
     sweep: str | None = None
     job_num: int | None = None
+    started: bool = False          # set once this job has written its status.json (run_experiment)
 
     @property
     def run_id(self) -> str:
@@ -359,6 +360,7 @@ def run_experiment(cfg: DictConfig, ctx: RunContext) -> RunOutcome:
     memory = check_memory(cfg, prepared.scenario, prepared.sensor, len(prepared.variants))   # before any work
     ctx.run_dir.mkdir(parents=True, exist_ok=True)
     write_status(ctx, experiment, "running", config_hash=config_hash, runs=runs)
+    ctx.started = True             # from here on a failure is this job's to record in its folder
     atomic_write_text(OmegaConf.to_yaml(cfg, resolve=True), ctx.run_dir / "config.yaml")
     variants = prepared.variants
     log.info("experiment %s: %d Monte Carlo runs, seed %d, variants %s -> %s", experiment, runs, seed, variants, ctx.run_dir)
