@@ -53,3 +53,74 @@ def test_a_refused_run_into_a_finished_runs_folder_leaves_its_results(tmp_path):
              and ".hydra" not in p.parts and not p.name.endswith(".log")}
     assert after == before
     assert json.loads((run / "status.json").read_text())["status"] == "ok"
+
+
+# ---- item 2: a failed publish is the run folder's failure, never the cache file's -----------------
+
+def _job(tmp_path: Path, name: str, *overrides: str):
+    """(cfg, ctx) of an in-process single run ``runs/<name>`` (record off), as ``python -m pipeline`` makes them."""
+    from pipeline.run.runner import RunContext
+    from tests.test_pipeline import compose_cfg
+    cfg = compose_cfg(f"paths.artifacts={tmp_path}", "record.enabled=false", *overrides)
+    return cfg, RunContext(tmp_path / "runs" / name, tmp_path, list(overrides))
+
+
+def _as_the_cli_runs_it(cfg, ctx) -> int | None:
+    """``python -m pipeline``'s single-run handling of a job (pipeline.__main__._run): its exit code."""
+    from pipeline.__main__ import _run
+    try:
+        _run(cfg, None, False, ctx)
+    except SystemExit as exc:
+        return exc.code
+    return 0
+
+
+def _full_disk_under(monkeypatch, folder: Path) -> None:
+    """Every new file under ``folder`` fails with ENOSPC, as on a full disk (the files there keep their
+    bytes): a temp file is refused, and so is a copy's first byte."""
+    import errno
+    import tempfile as tempfile_module
+
+    from pipeline.storage import store
+
+    real_mkstemp, real_copy = tempfile_module.mkstemp, store._clone_or_copy
+
+    def mkstemp(*args, dir=None, **kwargs):
+        if dir is not None and Path(dir).resolve().is_relative_to(folder.resolve()):
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        return real_mkstemp(*args, dir=dir, **kwargs)
+
+    def clone_or_copy(source, target):
+        if Path(target.name).resolve().is_relative_to(folder.resolve()):
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        return real_copy(source, target)
+
+    monkeypatch.setattr(store.tempfile, "mkstemp", mkstemp)
+    monkeypatch.setattr(store, "_clone_or_copy", clone_or_copy)
+
+
+def test_a_cache_hit_that_cannot_be_published_keeps_the_cache_file_and_ends_the_job_failed(tmp_path, monkeypatch,
+                                                                                              capsys):
+    """Item 2: with the run folder on a full disk, a cache hit that could not be copied was reported
+    'cannot be read' and moved aside as ``*.rejected``; status.json stayed ``running``."""
+    from pipeline.run.runner import run_experiment
+    run_experiment(*_job(tmp_path, "first", "mc.runs=2", "scenario.steps=20"))
+    cache = {p: p.read_bytes() for p in (tmp_path / "cache").rglob("*.parquet")}
+    cfg, ctx = _job(tmp_path, "second", "mc.runs=2", "scenario.steps=20")
+    from pipeline.storage.store import StageCache
+    real_load = StageCache.load
+
+    def fill_the_disk_then_load(self, *args, **kwargs):
+        _full_disk_under(monkeypatch, ctx.run_dir)   # its status.json and config.yaml are written: now it is full
+        return real_load(self, *args, **kwargs)
+
+    monkeypatch.setattr(StageCache, "load", fill_the_disk_then_load)
+    assert _as_the_cli_runs_it(cfg, ctx) == 2
+    err = capsys.readouterr().err
+    assert f"error: cannot write {ctx.run_dir / 'truth.parquet'}: No space left on device" in err
+    assert not list((tmp_path / "cache").rglob("*.rejected"))
+    assert {p: p.read_bytes() for p in (tmp_path / "cache").rglob("*.parquet")} == cache
+    status = json.loads((ctx.run_dir / "status.json").read_text())
+    assert status["status"] == "failed" and "No space left on device" in status["error"]
+    assert status["finished_at"] is not None
+    assert not [p for p in ctx.run_dir.rglob("*") if p.name.endswith(".tmp")]

@@ -13,6 +13,7 @@ import datetime as dt
 import json
 import logging
 import math
+import os
 import sys
 import time
 import traceback
@@ -29,7 +30,7 @@ from pipeline.storage import schemas
 from pipeline.contract import RecordingInputs, Study
 from pipeline.run.config import build, check_objective, compute_reference, flatten, selected_variants, validate
 from pipeline.run.environment import environment, table_metadata as environment_metadata
-from pipeline.errors import ConfigError
+from pipeline.errors import ConfigError, StorageError
 from pipeline.storage.estimates import StoredEstimates, recorded_runs
 from pipeline.evaluation.evaluate import (Window, group_reached, metrics_frame, models_per_step, reference_rows, summary_row,
                                summary_table, variant_rows)
@@ -104,7 +105,34 @@ def write_status(ctx: RunContext, experiment: str, status: str, *, config_hash: 
     }
     if detail:
         record["traceback"] = detail
-    atomic_write_text(json.dumps(record, indent=2), path)
+    try:
+        atomic_write_text(json.dumps(record, indent=2), path)
+    except StorageError:
+        # a full disk has no room for a new file, but this job's own status.json has its bytes: a job
+        # that ends must not stay 'running' there (issue 37)
+        if status == "running" or not path.exists() or not _overwrite_in_place(path, record):
+            raise
+
+
+def _overwrite_in_place(path: Path, record: dict) -> bool:
+    """Write ``record`` over the bytes ``path`` already has (the file's size unchanged, padded with
+    spaces, so no new block is needed): the whole record, else without its traceback and environment.
+    False if neither fits or the write fails."""
+    size = path.stat().st_size
+    compact = {k: v for k, v in record.items() if k not in ("traceback", "environment")}
+    for candidate in (record, compact | {"note": "written over the running status in place: the disk was full"}):
+        data = json.dumps(candidate, indent=2).encode()
+        if len(data) + 1 > size:
+            continue
+        try:
+            with open(path, "r+b") as f:
+                f.write(data + b" " * (size - len(data) - 1) + b"\n")
+                f.flush()
+                os.fsync(f.fileno())
+        except OSError:
+            return False
+        return True
+    return False
 
 
 def _provenance(df: pl.DataFrame, ctx: RunContext, experiment: str, config_hash: str, status: str = "ok",

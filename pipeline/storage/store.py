@@ -38,6 +38,7 @@ import hashlib
 import json
 import logging
 import os
+import re
 import shutil
 import tempfile
 import time
@@ -236,6 +237,20 @@ def _temp_beside(path: Path) -> tuple[int, str]:
         raise cannot_write(path, exc) from None
 
 
+def _os_error(exc: BaseException) -> OSError | None:
+    """The OSError behind ``exc``: itself, or the one a polars writer reports in its text (polars
+    raises ``ComputeError: parquet: ... underlying IO error: No space left on device (os error 28)``
+    where Python would raise OSError); None for anything else."""
+    if isinstance(exc, OSError):
+        return exc
+    if isinstance(exc, pl.exceptions.PolarsError):
+        found = re.search(r"\(os error (\d+)\)", str(exc))
+        if found:
+            code = int(found.group(1))
+            return OSError(code, os.strerror(code))
+    return None
+
+
 def _atomic_write(path: Path, write, binary: bool = True, locked: bool = False) -> None:
     """Write through a hidden temp file in the target directory, fsync, then rename over ``path``
     (with ``locked``, the rename alone runs under the directory's rename lock). An OSError (no such
@@ -252,8 +267,9 @@ def _atomic_write(path: Path, write, binary: bool = True, locked: bool = False) 
     except BaseException as exc:
         if os.path.exists(tmp):
             os.unlink(tmp)
-        if isinstance(exc, OSError):
-            raise cannot_write(path, exc) from None
+        error = _os_error(exc)
+        if error is not None:
+            raise cannot_write(path, error) from None
         raise
 
 
@@ -474,13 +490,16 @@ class StageCache:
                     f.seek(0)
                     df = pl.read_parquet(f)
                     verify_checksum(df, meta, path)
-                    if publish_to is not None:
-                        publish(f, publish_to)
-                    return df, meta
             except TableDamaged as exc:
                 problem = str(exc).split(": ", 1)[1]
             except Exception as exc:  # unreadable: truncated, not Parquet, ...
                 problem = f"it cannot be read ({type(exc).__name__}: {str(exc).splitlines()[0][:200]})"
+            if problem is None:
+                # read and verified: a copy that fails now (a full disk, no permission) is the run folder's
+                # failure, raised as such (a StorageError naming it); the good cache file stays
+                if publish_to is not None:
+                    publish(f, publish_to)
+                return df, meta
             # still open: the inode cannot be reused by a new file before the identity check
             self.reject(path, problem, found)
         return None
