@@ -124,3 +124,44 @@ def test_a_cache_hit_that_cannot_be_published_keeps_the_cache_file_and_ends_the_
     assert status["status"] == "failed" and "No space left on device" in status["error"]
     assert status["finished_at"] is not None
     assert not [p for p in ctx.run_dir.rglob("*") if p.name.endswith(".tmp")]
+
+
+# ---- item 3: record.runs checked up front; a failed recording keeps the tables ----------------------
+
+@pytest.mark.parametrize("record_runs, message", [
+    ("[0,1,1]", r"record.runs: \[0, 1, 1\] lists run\(s\) \[1\] more than once; each recorded run is listed once, "
+                r"e.g. record.runs=\[0, 1\]"),
+    ("[0,2]", r"record.runs: \[0, 2\] holds run index\(es\) \[2\] outside the 2 Monte Carlo runs"),
+    ("[-1]", r"record.runs: \[-1\] holds run index\(es\) \[-1\] outside"),
+])
+def test_record_runs_are_checked_before_any_stage(tmp_path, record_runs, message):
+    """Item 3: record.runs=[0,1,1] failed with a traceback after every stage had run."""
+    from pipeline.errors import ConfigError
+    from pipeline.run.runner import run_experiment
+    with pytest.raises(ConfigError, match=message):
+        run_experiment(*_job(tmp_path, "bad", "mc.runs=2", "record.enabled=true", f"record.runs={record_runs}"))
+    assert not (tmp_path / "cache").exists() and not (tmp_path / "runs").exists()
+
+
+def test_a_failure_in_the_record_stage_keeps_the_computed_tables(tmp_path, monkeypatch, capsys):
+    """Item 3: a failure in the record stage replaced summary.parquet by the one-row failure summary,
+    though the tables had been written and the message said so."""
+    from pipeline.errors import StorageError
+    from pipeline.storage.store import read_table
+    from pipeline.studies.single_target import SingleTargetStudy
+
+    def record(self, path, inputs):
+        raise StorageError(f"cannot write {path}: No space left on device. Nothing was left under that name; "
+                           f"the tables were written before the recording; record.enabled=false skips it.")
+
+    monkeypatch.setattr(SingleTargetStudy, "record", record)
+    cfg, ctx = _job(tmp_path, "rec", "mc.runs=2", "scenario.steps=20", "record.enabled=true")
+    assert _as_the_cli_runs_it(cfg, ctx) == 2
+    assert "the tables were written before the recording" in capsys.readouterr().err
+    summary, _ = read_table(ctx.run_dir / "summary.parquet")            # whole, its checksum verified
+    assert summary.height > 1 and set(summary["status"]) == {"ok"} and summary["value"].is_not_null().any()
+    for name in ("metrics", "comparisons", "per_run", "resamples"):
+        read_table(ctx.run_dir / f"{name}.parquet")
+    assert "FSIMM" in (ctx.run_dir / "report.txt").read_text()
+    status = json.loads((ctx.run_dir / "status.json").read_text())
+    assert status["status"] == "failed" and "recording.rrd" in status["error"]

@@ -113,6 +113,10 @@ def validate(cfg: DictConfig) -> None:
     if bad:
         raise ConfigError(f"record.runs: {list(record_runs)} holds run index(es) {bad} outside the {runs} Monte Carlo "
                           f"runs; allowed indices are 0..{runs - 1} (mc.runs={runs}).")
+    twice = sorted({r for r in record_runs if list(record_runs).count(r) > 1})
+    if twice:
+        raise ConfigError(f"record.runs: {list(record_runs)} lists run(s) {twice} more than once; each recorded run "
+                          f"is listed once, e.g. record.runs={sorted(set(record_runs))}.")
     windows = _check_windows(cfg, "windows")
     for name in _check_windows(cfg, "count_windows"):
         if name in windows:

@@ -62,6 +62,7 @@ class RunContext:
     sweep: str | None = None
     job_num: int | None = None
     started: bool = False          # set once this job has written its status.json (run_experiment)
+    tables_written: bool = False   # set once it has written its summary and the other computed tables
 
     @property
     def run_id(self) -> str:
@@ -229,9 +230,12 @@ def failure_summary(ctx: RunContext, experiment: str, error: str, resolved: dict
 
 def record_failure(ctx: RunContext, experiment: str, error: str, resolved: dict | None, detail: str | None,
                    peak_rss_mb: float | None = None) -> None:
-    """A failed job leaves status.json and a one-row summary saying why, so sweeps stay queryable."""
+    """A failed job leaves status.json and a one-row summary saying why, so sweeps stay queryable. A job
+    that failed after writing its tables (in the record stage) keeps them: its summary is not replaced."""
     ctx.run_dir.mkdir(parents=True, exist_ok=True)
     write_status(ctx, experiment, "failed", error=error, detail=detail, peak_rss_mb=peak_rss_mb)
+    if ctx.tables_written:
+        return
     atomic_write_parquet(failure_summary(ctx, experiment, error, resolved), ctx.run_dir / "summary.parquet",
                          schemas.table_metadata("summary", {}, {}))
 
@@ -477,6 +481,13 @@ def run_experiment(cfg: DictConfig, ctx: RunContext) -> RunOutcome:
     log.info("[evaluate] metrics for %d variants x %d steps, %.2f s", len(variants), K,
              evaluation.measuring_seconds + time.perf_counter() - started)
 
+    text = job_header(format_summary(summary, experiment, runs, evaluated.comparisons), ctx)
+    if report_tables:
+        report_ctx = ReportContext(experiment, runs, display, metrics, summary)
+        text += "".join(f"\n\n{table.render(report_ctx)}" for table in report_tables.values())
+    atomic_write_text(text + "\n", ctx.run_dir / "report.txt")
+    ctx.tables_written = True      # a failure from here on (the recording) keeps them (record_failure)
+
     if cfg.record.enabled:
         started = time.perf_counter()
         # no count measures a recording: it shows its time so far (and a filter re-run for it, its scans)
@@ -488,12 +499,6 @@ def run_experiment(cfg: DictConfig, ctx: RunContext) -> RunOutcome:
                 seed=seed, config_text=OmegaConf.to_yaml(cfg, resolve=True),
                 description=str(cfg.get("description", ""))))
         log.info("[record] recording.rrd (runs %s), %.2f s", record_runs, time.perf_counter() - started)
-
-    text = job_header(format_summary(summary, experiment, runs, evaluated.comparisons), ctx)
-    if report_tables:
-        report_ctx = ReportContext(experiment, runs, display, metrics, summary)
-        text += "".join(f"\n\n{table.render(report_ctx)}" for table in report_tables.values())
-    atomic_write_text(text + "\n", ctx.run_dir / "report.txt")
     write_status(ctx, experiment, "ok", config_hash=config_hash, runs=runs)
     log.info("done in %.2f s", time.perf_counter() - total_started)
     return RunOutcome(summary, metrics, text, evaluated.comparisons)
