@@ -165,3 +165,63 @@ def test_a_failure_in_the_record_stage_keeps_the_computed_tables(tmp_path, monke
     assert "FSIMM" in (ctx.run_dir / "report.txt").read_text()
     status = json.loads((ctx.run_dir / "status.json").read_text())
     assert status["status"] == "failed" and "recording.rrd" in status["error"]
+
+
+# ---- item 4: temp files of killed jobs are cleaned from the cache, a live writer's never -------------
+
+_WRITE_AND_STOP = """
+import os, signal, sys, time
+import polars as pl
+from pipeline.storage.store import StageCache
+stream = StageCache(sys.argv[1]).stream("track", "abc")
+stream.write(pl.DataFrame({"x": list(range(1000))}))       # a chunk on disk, never renamed
+print(stream.tmp.name, flush=True)
+if sys.argv[2] == "kill":
+    os.kill(os.getpid(), signal.SIGKILL)                     # as the OOM killer would
+time.sleep(60)                                               # a live writer, between two chunks
+"""
+
+
+def _writer(cache: Path, how: str):
+    import subprocess
+    import sys
+    proc = subprocess.Popen([sys.executable, "-c", _WRITE_AND_STOP, str(cache), how], stdout=subprocess.PIPE,
+                            text=True, env={**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])})
+    name = proc.stdout.readline().strip()
+    return proc, cache / "track" / name
+
+
+def test_temp_files_of_killed_jobs_are_removed_from_the_cache_and_a_live_writers_kept(tmp_path, caplog):
+    """Item 4: SIGKILL left orphaned ``.*.tmp`` files in the cache (190 MB after four kills), never
+    cleaned. The next job that uses the stage removes those whose writer is gone; a writer still
+    running keeps its file, and one this machine cannot check is left for ORPHAN_GRACE_S."""
+    import logging
+    import signal
+    import time
+
+    from pipeline.storage.store import ORPHAN_GRACE_S, StageCache
+    cache = tmp_path / "cache"
+    killed, killed_tmp = _writer(cache, "kill")
+    assert killed.wait(timeout=60) == -signal.SIGKILL and killed_tmp.is_file()
+    alive, alive_tmp = _writer(cache, "live")
+    try:
+        own = StageCache(cache).stream("track", "own")             # this process's, unfinished
+        own.write(pl.DataFrame({"x": [1]}))
+        old = time.time() - ORPHAN_GRACE_S - 60
+        unknown_old, unknown_new = cache / "track" / ".k.parquet.x1y2.tmp", cache / "track" / ".n.parquet.z3.tmp"
+        elsewhere_old = cache / "track" / ".e.parquet.wffffffeeeeee-12-34.abcd.tmp"     # another host's writer
+        for path in (unknown_old, unknown_new, elsewhere_old):
+            path.write_bytes(b"PAR1")
+        for path in (unknown_old, elsewhere_old):
+            os.utime(path, (old, old))
+        caplog.set_level(logging.INFO)
+        assert StageCache(cache).load("track", "abc", "estimates") is None
+        assert not killed_tmp.exists() and not unknown_old.exists() and not elsewhere_old.exists()
+        assert alive_tmp.is_file() and own.tmp.is_file() and unknown_new.is_file()
+        assert "cache/track: removed 3 temp file(s)" in caplog.text
+    finally:
+        alive.kill()
+        alive.wait(timeout=60)
+    StageCache(cache).load("track", "abc", "estimates")           # its writer gone now: removed too
+    assert not alive_tmp.exists() and own.tmp.is_file()
+    own.abort()

@@ -32,6 +32,20 @@ def identity() -> dict:
     return {"host": socket.gethostname(), "pid": pid, "boot_id": _boot_id(), "start_ticks": _start_ticks(pid)}
 
 
+def is_running(pid: int, start_ticks: int | None) -> bool:
+    """Whether the process ``pid`` of this boot that started at ``start_ticks`` still runs: a reused pid
+    is told apart by its start time (Linux); without one, by the pid alone."""
+    if start_ticks is not None and _boot_id() is not None:
+        return _start_ticks(pid) == start_ticks
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:       # alive, someone else's
+        return True
+    return True
+
+
 def is_gone(process: dict | None) -> bool | None:
     """True if the recorded process has ended, False if it still runs, None if this machine cannot tell
     (another host, or no process recorded)."""

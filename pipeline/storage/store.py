@@ -1,8 +1,11 @@
 """Parquet I/O: atomic writes, the per-stage cache, and provenance metadata.
 
-Writes go to a hidden temp file in the target directory (``.<name>.<random>.tmp``), are
+Writes go to a hidden temp file in the target directory (``.<name>.w<writer>.<random>.tmp``), are
 fsync'ed, then renamed over the target: a reader sees the old file or the new one, never a
-half-written one, and the temp name matches no ``*.parquet`` glob.
+half-written one, and the temp name matches no ``*.parquet`` glob. ``<writer>`` names the process
+that writes it (a hash of its host and boot, its pid and start time): a temp file left by a killed
+job is removed from the cache by the next job that uses the stage (``remove_orphans``) once that
+process is gone, and one of an unknown or another host's writer once untouched for a day.
 
 The cache keeps one file per stage output under ``<artifacts>/cache/<stage>/<key>.parquet``.
 The key hashes the stage's resolved config, its inputs' keys, the package version and the
@@ -227,12 +230,70 @@ def _renames_locked(directory: Path) -> Iterator[None]:
         os.close(fd)
 
 
+# A temp file whose writer this machine cannot check (written on another host, or before temp names
+# named their writer) is an orphan once untouched this long: a live writer touches its file with every
+# chunk it writes, and no table here takes a day between two chunks.
+ORPHAN_GRACE_S = 24 * 3600.0
+_WRITER = re.compile(r"\.w(?P<host>[0-9a-f]{6})(?P<boot>[0-9a-f]{6})-(?P<pid>\d+)-(?P<ticks>\d+|x)\.[^.]+(\.copy)?\.tmp$")
+
+
+def _short_hash(text: object) -> str:
+    return hashlib.sha256(str(text).encode()).hexdigest()[:6]
+
+
+def writer_tag() -> str:
+    """This process as a temp file names it: ``w<host hash><boot hash>-<pid>-<start ticks or x>``."""
+    from pipeline.run.process import identity
+    me = identity()
+    ticks = me["start_ticks"] if me["start_ticks"] is not None else "x"
+    return f"w{_short_hash(me['host'])}{_short_hash(me['boot_id'])}-{me['pid']}-{ticks}"
+
+
+def orphaned(path: Path, now: float | None = None) -> bool:
+    """Whether the hidden temp file ``path`` is left over by a writer that has ended: one named by a
+    process of this host whose process is gone (or of an earlier boot), or, where its writer cannot be
+    checked, one untouched for ``ORPHAN_GRACE_S``. A live writer's file is never orphaned."""
+    from pipeline.run.process import identity, is_running
+    try:
+        age = (time.time() if now is None else now) - path.lstat().st_mtime
+    except FileNotFoundError:
+        return False
+    found = _WRITER.search(path.name)
+    me = identity()
+    if found and found["host"] == _short_hash(me["host"]):
+        if found["boot"] != _short_hash(me["boot_id"]):
+            return True                   # written before this machine's last boot
+        return not is_running(int(found["pid"]), None if found["ticks"] == "x" else int(found["ticks"]))
+    return age > ORPHAN_GRACE_S
+
+
+def remove_orphans(folder: Path) -> list[tuple[Path, int]]:
+    """Remove the orphaned hidden temp files (``orphaned``) directly in ``folder``; (path, bytes) of each."""
+    removed = []
+    try:
+        entries = list(os.scandir(folder))
+    except OSError:
+        return removed
+    now = time.time()
+    for entry in entries:
+        if not (entry.name.startswith(".") and entry.name.endswith(".tmp")) or not entry.is_file(follow_symlinks=False):
+            continue
+        path = Path(entry.path)
+        if orphaned(path, now):
+            with contextlib.suppress(OSError):
+                size = entry.stat(follow_symlinks=False).st_size
+                path.unlink()
+                removed.append((path, size))
+    return removed
+
+
 def _temp_beside(path: Path) -> tuple[int, str]:
     """(fd, name) of a new hidden temp file in ``path``'s folder (made if missing), which no
-    ``*.parquet`` glob matches; an OSError becomes a StorageError naming the path."""
+    ``*.parquet`` glob matches and which names its writer (``writer_tag``); an OSError becomes a
+    StorageError naming the path."""
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        return tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+        return tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.{writer_tag()}.", suffix=".tmp")
     except OSError as exc:
         raise cannot_write(path, exc) from None
 
@@ -416,7 +477,7 @@ def publish(src: Path | BinaryIO, dst: Path, link: bool = False) -> None:
     except OSError as exc:
         raise cannot_write(dst, exc) from None
     # unique per call (not per process): threads of one worker process never share a temp name
-    tmp = dst.parent / f".{dst.name}.{os.getpid()}.{uuid.uuid4().hex[:8]}.copy.tmp"
+    tmp = dst.parent / f".{dst.name}.{writer_tag()}.{uuid.uuid4().hex[:8]}.copy.tmp"
     try:
         if link and isinstance(src, (str, Path)):
             try:
@@ -458,15 +519,28 @@ class StageCache:
         self.root = Path(root)
         self.enabled = enabled
         self.events: list[CacheEvent] = []
+        self._swept: set[str] = set()
 
     def path(self, stage: str, key: str) -> Path:
         return self.root / stage / f"{key}.parquet"
+
+    def sweep(self, stage: str) -> None:
+        """Once per stage folder and cache: remove the temp files killed jobs left there (``remove_orphans``)."""
+        if stage in self._swept:
+            return
+        self._swept.add(stage)
+        removed = remove_orphans(self.root / stage)
+        if removed:
+            log.info("cache/%s: removed %d temp file(s) of %.1f MB left by jobs that ended before renaming them "
+                     "(killed): %s", stage, len(removed), sum(size for _, size in removed) / 1e6,
+                     ", ".join(p.name for p, _ in removed[:3]) + (" ..." if len(removed) > 3 else ""))
 
     def load(self, stage: str, key: str, table: str, publish_to: Path | None = None
              ) -> tuple[pl.DataFrame, dict[str, str]] | None:
         """The cached table and its metadata, or None (a miss, or a file found bad and moved aside).
         With ``publish_to``, a hit is also copied there from the very file that was read and verified."""
         path = self.path(stage, key)
+        self.sweep(stage)
         if not self.enabled:
             return None
         try:
