@@ -18,6 +18,8 @@ import pytest
 
 from pipeline.results import query as q
 from pipeline.results.query import QueryError, QueryWarning, load_tables, main, query
+from pipeline.storage.schemas import table_metadata
+from pipeline.storage.store import atomic_write_parquet
 
 SWEEP = "multirun/2026-11-21_08-00-00_000000"
 RUN_CV = "runs/cv_turn/2026-11-20_09-00-00"
@@ -29,6 +31,18 @@ EXAMPLE = q.EXAMPLE_SQL
 
 
 # ---- writing a fake tree ------------------------------------------------------------------------
+def _write(df: pl.DataFrame, path: Path, table: str) -> None:
+    """As the runner writes a table: its name and content checksum in the metadata (a run folder's table
+    without them is refused: pipeline.storage.run_tables)."""
+    atomic_write_parquet(df, path, table_metadata(table, {}, {}))
+
+
+def _config_hash(run_dir: Path) -> str:
+    """The config hash the folder's status.json records (every table of the run carries the same)."""
+    path = run_dir / "status.json"
+    return json.loads(path.read_text())["config_hash"] if path.is_file() else "cfg0"
+
+
 def _status(root: Path, run_dir: Path, experiment: str, *, status: str = "ok", error=None,
             started: str, overrides=(), sweep=None, job_num=None, runs: int = 20) -> None:
     run_dir.mkdir(parents=True, exist_ok=True)
@@ -56,11 +70,11 @@ def _summary(root: Path, run_dir: Path, experiment: str, config: dict, values: d
                                     "series": pl.String, "window": pl.String,
                                     "value": pl.Float64, "unit": pl.String})
     df = df.with_columns(
-        pl.lit(n_runs, dtype=pl.Int32).alias("n_runs"), pl.lit("cfg0").alias("config_hash"),
+        pl.lit(n_runs, dtype=pl.Int32).alias("n_runs"), pl.lit(_config_hash(run_dir)).alias("config_hash"),
         pl.lit(" ".join(overrides)).alias("overrides"),
         pl.lit(sweep, dtype=pl.String).alias("sweep"), pl.lit(job_num, dtype=pl.Int32).alias("job_num"),
         *[pl.lit(v).alias(k) for k, v in config.items()])
-    df.write_parquet(run_dir / "summary.parquet")
+    _write(df, run_dir / "summary.parquet", "summary")
     return df
 
 
@@ -70,7 +84,7 @@ def _metrics(root: Path, run_dir: Path, experiment: str, variants, steps: int = 
              "variant_key": v.lower().replace("-", "_"), "series": "position_rmse", "step": k,
              "time": 0.5 * k, "value": 1.0 + 0.1 * k, "n_runs": 20}
             for v in variants for k in range(steps)]
-    pl.DataFrame(rows, schema=q.METRICS_COLUMNS).write_parquet(run_dir / "metrics.parquet")
+    _write(pl.DataFrame(rows, schema=q.METRICS_COLUMNS), run_dir / "metrics.parquet", "metrics")
 
 
 def _vsimm_values(t1: float) -> dict:
@@ -119,13 +133,13 @@ def make_tree(root: Path) -> Path:
         else:   # failed job: status.json + one-row summary with Null-typed metric/value/variant
             _status(root, d, "ao_vsimm_sweep", status="failed", error=TRACEBACK,
                     started="2026-11-21T08:02:00+00:00", overrides=ov, sweep=SWEEP, job_num=job)
-            pl.DataFrame({"run_id": [f"{SWEEP}/2"], "experiment": ["ao_vsimm_sweep"],
+            _write(pl.DataFrame({"run_id": [f"{SWEEP}/2"], "experiment": ["ao_vsimm_sweep"],
                           "status": ["failed"], "error": [TRACEBACK], "variant": [None],
                           "variant_key": [None], "series": [None], "window": [None],
                           "value": [None], "unit": [None], "n_runs": [20],
-                          "config_hash": ["cfg2"], "overrides": [" ".join(ov)], "sweep": [SWEEP],
+                          "config_hash": [_config_hash(d)], "overrides": [" ".join(ov)], "sweep": [SWEEP],
                           "job_num": [2], **{k: [v] for k, v in cfg.items()}}
-                         ).write_parquet(d / "summary.parquet")
+                         ), d / "summary.parquet", "summary")
     # a writer's partial temp file next to job 1's summary, and a hidden .hydra dir
     (sweep / "1" / ".summary.parquet.k3j2x9.tmp").write_bytes(b"PAR1\x15\x04")
     (sweep / "1" / ".hydra").mkdir()

@@ -12,6 +12,8 @@ from pathlib import Path
 import polars as pl
 import pytest
 
+from pipeline.storage.schemas import table_metadata
+from pipeline.storage.store import atomic_write_parquet
 from pipeline.results.query import QueryWarning, compared_literals, main, query, tables_overview
 
 RUN_AO = "runs/ao_vsimm_s1/2026-11-20_10-00-00"
@@ -36,10 +38,12 @@ def _run(root: Path, rel: str, experiment: str, n_runs: int, variants: dict, ser
                 steps += [{"variant": display, "variant_key": key, "metric": metric, "series": name, "step": k,
                            "time": float(k), "value": 1.0, "n_runs": n_runs} for k in range(3)]
     provenance = [pl.lit(rel).alias("run_id"), pl.lit(experiment).alias("experiment"), pl.lit("ok").alias("status")]
-    pl.DataFrame(rows).with_columns(pl.col("n_runs").cast(pl.Int32), *provenance,
-                                    *[pl.lit(v).alias(k) for k, v in config.items()]
-                                    ).write_parquet(d / "summary.parquet")
-    pl.DataFrame(steps).with_columns(pl.col("n_runs").cast(pl.Int32), *provenance).write_parquet(d / "metrics.parquet")
+    # as the runner writes them: the table's name and content checksum in its metadata
+    atomic_write_parquet(pl.DataFrame(rows).with_columns(pl.col("n_runs").cast(pl.Int32), *provenance,
+                                                         *[pl.lit(v).alias(k) for k, v in config.items()]),
+                         d / "summary.parquet", table_metadata("summary", {}, {}))
+    atomic_write_parquet(pl.DataFrame(steps).with_columns(pl.col("n_runs").cast(pl.Int32), *provenance),
+                         d / "metrics.parquet", table_metadata("metrics", {}, {}))
 
 
 AO_SERIES = {"acceleration_rmse_x": ("acceleration_rmse", ["all", "after_switch"], True),

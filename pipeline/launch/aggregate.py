@@ -6,6 +6,10 @@ Hydra calls ``SweepSummary.on_multirun_end`` after a multirun. Jobs never raise 
 function (they record their failure instead), so the callback runs even when a job failed; it is
 also a CLI for a sweep that was interrupted: ``python -m pipeline.aggregate <sweep_dir>``.
 
+A job's summary enters the sweep's tables only where it is the one the job wrote (its checksum, run_id
+and config hash: pipeline.storage.run_tables); a job whose summary is left out is listed as
+``skipped`` with the reason, in the glance, the jobs table and the exit code (1), never as ok.
+
 ``SweepSummary.on_multirun_start`` runs in the driver before any job is launched and pins the
 sweep directory to an absolute path (the driver's working directory + the configured, usually
 relative, ``hydra.sweep.dir``). Launchers that run jobs in other processes re-compose each job's
@@ -104,7 +108,9 @@ class SweepSummary(Callback):
                   f"node mounts at the same path: pass an absolute paths.artifacts=/shared/... ; the jobs' "
                   f"own logs are in the launcher's output above.", file=sys.stderr)
             sys.exit(1)
-        print(f"sweep {sweep_dir}: {jobs} jobs, {jobs - len(failures)} ok, {len(failures)} failed; "
+        skipped = sum(f.get("status") == "skipped" for f in failures)
+        print(f"sweep {sweep_dir}: {jobs} jobs, {jobs - len(failures)} ok, {len(failures) - skipped} failed"
+              + (f", {skipped} skipped (their summary left out: see below)" if skipped else "") + "; "
               f"summary of all jobs in {sweep_dir / SWEEP_SUMMARY}, the jobs and their swept values in "
               f"{SWEEP_INDEX}" + (", their metric curves in sweep.rrd" if (sweep_dir / "sweep.rrd").is_file() else ""),
               file=sys.stderr)
@@ -149,7 +155,12 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     sweep = aggregate(Path(args[0]))
     failures = sweep.failures
-    print(f"{sweep.summary.height} summary rows; {len(sweep.jobs)} jobs, {len(failures)} failed", file=sys.stderr)
+    skipped = sum(f.get("status") == "skipped" for f in failures)
+    print(f"{sweep.summary.height} summary rows; {len(sweep.jobs)} jobs, {len(failures) - skipped} failed"
+          + (f", {skipped} skipped (their summary left out)" if skipped else ""), file=sys.stderr)
+    for f in failures:
+        if f.get("status") == "skipped":
+            print(f"  job {f.get('job_num')} skipped: {f.get('error')}", file=sys.stderr)
     print(format_glance(sweep), file=sys.stderr)
     report_best_job(Path(args[0]))
     return 1 if failures else 0

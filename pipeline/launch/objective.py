@@ -27,7 +27,8 @@ import polars as pl
 import yaml
 
 from pipeline.errors import ConfigError
-from pipeline.storage.store import atomic_write_text, read_table, read_yaml
+from pipeline.storage.run_tables import read_run_table
+from pipeline.storage.store import atomic_write_text, read_yaml
 
 log = logging.getLogger("pipeline.launch.objective")
 
@@ -93,8 +94,9 @@ def best_job(sweep_dir: Path, jobs: list[JobObjective] | None = None) -> dict[st
             continue
         objectives[job.job_dir.name] = job.objective
         try:
-            value = objective_value(read_table(job.job_dir / "summary.parquet")[0], job.objective)
-        except Exception as exc:       # a damaged or missing summary: this job cannot be compared
+            # checked against the job folder too: a summary rewritten or copied in is not this job's
+            value = objective_value(read_run_table(job.job_dir, "summary.parquet", job.status)[0], job.objective)
+        except Exception as exc:       # a damaged, refused or missing summary: this job cannot be compared
             log.warning("job %s left out of the best job: %s", job.job_dir.name, exc)
             continue
         if value is not None and not math.isnan(value):

@@ -38,7 +38,9 @@ Only files with those names (and ``status.json``) are read,
 never hidden files or directories (the writers' ``.<name>.<random>.tmp`` temp files, ``.hydra``,
 ``.submitit``), never ``*.rejected`` and never ``<root>/cache``. A corrupt or truncated Parquet
 file, or one whose rows do not match the content checksum stored when it was written
-(pipeline.storage.store), is skipped with a warning naming it; it does not fail the query.
+(pipeline.storage.store), is skipped with a warning naming it; it does not fail the query. So is a
+table that is not the one its run folder's run wrote under that name (pipeline.storage.run_tables:
+no checksum, another run's run_id or config hash, a stage table under another name's cache key).
 
 Reading strategy: each file is read whole once and checked against its content checksum
 (pipeline.storage.store; 1-2 ms to read a summary file, about 4 ms to check it), its schema goes into the
@@ -392,12 +394,23 @@ class _ParquetTable:
     schemas: list[pl.Schema] = field(default_factory=list)
     constants: dict[Path, dict[str, str]] = field(default_factory=dict)   # a stage file's run_id, ...
 
-    def add(self, path: Path, warn: Warn, constants: Mapping[str, str] | None = None) -> None:
+    def add(self, path: Path, warn: Warn, constants: Mapping[str, str] | None = None,
+            folder: RunDir | None = None, status: Mapping | None = None) -> None:
+        from pipeline.storage.run_tables import TableRefused, check_run_table
         from pipeline.storage.store import TableDamaged, read_table
         try:
             # read whole and checked against the content checksum stored when it was written: a
-            # file that still parses after damage must not answer a query (pipeline.storage.store)
-            schema = read_table(path)[0].schema
+            # file that still parses after damage must not answer a query (pipeline.storage.store);
+            # and, in a run folder, against the folder: a checksum it has, this run's id, config
+            # hash and cache keys (pipeline.storage.run_tables)
+            df, meta = read_table(path)
+            if folder is not None:
+                check_run_table(path, df, meta, status, path.relative_to(folder.path).as_posix())
+            schema = df.schema
+            del df
+        except TableRefused as e:
+            warn(f"skipping {_one_line(e, 400)}")
+            return
         except TableDamaged as e:
             warn(f"skipping damaged {_one_line(e)}")
             return
@@ -492,22 +505,24 @@ class _Catalog:
     tables: dict[str, _ParquetTable] = field(default_factory=dict)
 
     def table(self, name: str) -> _ParquetTable:
+        from pipeline.storage.run_tables import read_status
         if name not in self.tables:
             t = _ParquetTable(name)
             experiments = dict(zip(self.runs["run_id"].to_list(), self.runs["experiment"].to_list())) \
                 if self.runs.height else {}
             for r in self.run_dirs:
+                status = read_status(r.path)
                 if name == "estimates":
                     folder = r.path / "estimates"
                     for p in sorted(folder.glob("*.parquet")) if folder.is_dir() else []:
                         if not p.name.startswith("."):
                             t.add(p, self.warn, {"run_id": r.run_id, "experiment": experiments.get(r.run_id),
-                                                 "variant_key": p.stem})
+                                                 "variant_key": p.stem}, r, status)
                     continue
                 p = r.path / TABLE_FILES[name]
                 if p.is_file():
                     t.add(p, self.warn, {"run_id": r.run_id, "experiment": experiments.get(r.run_id)}
-                          if name in STAGE_TABLES else None)
+                          if name in STAGE_TABLES else None, r, status)
             self.tables[name] = t
         return self.tables[name]
 

@@ -48,7 +48,8 @@ from typing import Any, Mapping, Sequence
 import polars as pl
 
 from pipeline.run.stored import stored_config
-from pipeline.storage.store import TableDamaged, read_table
+from pipeline.storage.run_tables import read_run_table
+from pipeline.storage.store import TableDamaged
 
 FIGURE_KEYS = {"title", "query", "x", "y", "series", "lower", "upper", "kind", "xlabel", "ylabel", "logy",
                "reference"}
@@ -252,7 +253,9 @@ def load_run(run_dir: Path) -> RunTables:
 
     def read(name: str) -> pl.DataFrame:
         try:
-            df = read_table(run_dir / name)[0]
+            # checksum verified, and the table this folder's run wrote under this name: a checksum it has, this
+            # run's id and config hash (pipeline.storage.run_tables)
+            df = read_run_table(run_dir, name, status)[0]
         except TableDamaged as exc:
             raise ReportError(f"{exc}; re-run the job (or `python -m pipeline.recompute {run_dir}` to see what "
                               f"differs) before reporting on it") from None

@@ -60,6 +60,17 @@ class Job:
     summary: pl.DataFrame | None = None
     values: dict[str, Any] = field(default_factory=dict)     # swept key -> this job's value (set by collect)
     label: str = ""
+    skipped: str | None = None       # why its summary was left out (damaged, refused, unreadable), if it was
+
+    @property
+    def state(self) -> str:
+        """Its status.json status, or ``skipped`` where its summary was left out of the sweep's tables."""
+        return "skipped" if self.skipped else (self.status.get("status") or "unknown")
+
+    @property
+    def error(self) -> str | None:
+        return self.skipped or (self.status.get("error") if self.status else
+                                "no status.json: the job did not start its task, or its process died first")
 
     @property
     def num(self) -> int | None:
@@ -80,7 +91,10 @@ class Sweep:
 
     @property
     def failures(self) -> list[dict]:
-        return [j.status for j in self.jobs if j.status and j.status.get("status") != "ok"]
+        """The status of every job that did not end ok, or whose summary was skipped (``status``
+        ``skipped``, ``error`` why)."""
+        return [{**j.status, "status": j.state, "error": j.error} if j.skipped else j.status
+                for j in self.jobs if (j.status and j.status.get("status") != "ok") or j.skipped]
 
 
 # ---- the jobs and their swept values ------------------------------------------------------------
@@ -90,8 +104,9 @@ def _job_order(folder: Path) -> tuple:
 
 def read_job(folder: Path) -> Job:
     """A run or job folder's status.json, overrides (status.json's, else .hydra/overrides.yaml) and
-    summary; a summary that is damaged or unreadable is left out with a warning."""
-    from pipeline.storage.store import read_table
+    summary; a summary that is damaged, unreadable or not this job's (pipeline.storage.run_tables: no
+    checksum, another run's) is left out with a warning, and the job is ``skipped`` with the reason."""
+    from pipeline.storage.run_tables import read_run_table
 
     status_path = folder / "status.json"
     status = json.loads(status_path.read_text()) if status_path.is_file() else {}
@@ -103,9 +118,11 @@ def read_job(folder: Path) -> Job:
     summary = folder / "summary.parquet"
     if summary.exists():
         try:
-            job.summary = read_table(summary)[0]
-        except Exception as exc:  # noqa: BLE001 - damaged (checksum) or unreadable: this job's rows are left out, named
-            log.warning("skipped %s: %s", summary, exc)
+            job.summary = read_run_table(folder, "summary.parquet", status)[0]
+        except Exception as exc:  # noqa: BLE001 - damaged, refused or unreadable: this job's rows are left out, named
+            reason = (str(exc).splitlines()[0] if str(exc) else type(exc).__name__).replace(str(summary), summary.name)
+            job.skipped = reason if reason.startswith(summary.name) else f"{summary.name}: {reason}"
+            log.warning("skipped job folder %s: %s", folder, job.skipped)
     return job
 
 
@@ -246,11 +263,9 @@ def jobs_table(jobs: Sequence[Job], swept: Sequence[str]) -> pl.DataFrame:
     columns = [
         pl.Series("job_num", [j.num for j in jobs], dtype=pl.Int32),
         pl.Series("job", [j.label for j in jobs], dtype=pl.String),
-        pl.Series("status", [j.status.get("status") or "unknown" for j in jobs], dtype=pl.String),
+        pl.Series("status", [j.state for j in jobs], dtype=pl.String),
         pl.Series("experiment", [_experiment(j) for j in jobs], dtype=pl.String),
-        pl.Series("error", [j.status.get("error") if j.status else
-                            "no status.json: the job did not start its task, or its process died first"
-                            for j in jobs], dtype=pl.String),
+        pl.Series("error", [j.error for j in jobs], dtype=pl.String),
         pl.Series("run_dir", [j.folder.name for j in jobs], dtype=pl.String),
     ]
     columns += [typed_column(k, [j.values[k] for j in jobs]) for k in swept if k not in JOB_COLUMNS]
@@ -285,9 +300,9 @@ def format_glance(sweep: Sweep, width: int = 60) -> str:
     header = ["job"] + [sweep.short[k] for k in sweep.swept] + ["status"]
     rows = [header]
     for job in sweep.jobs:
-        status = job.status.get("status") or "unknown"
-        if status != "ok" and job.status.get("error"):
-            error = " ".join(str(job.status["error"]).split())
+        status = job.state
+        if status != "ok" and job.error:
+            error = " ".join(str(job.error).split())
             status += ": " + (error if len(error) <= width else error[: width - 1] + "…")
         rows.append([str(job.num)] + [format_value(job.values[k]) for k in sweep.swept] + [status])
     widths = [max(len(r[i]) for r in rows) for i in range(len(header) - 1)]

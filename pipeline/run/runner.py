@@ -45,6 +45,7 @@ from pipeline.run.progress import Reporter, choose_mode
 from pipeline.views.tables import ReportContext, format_summary
 from pipeline.run.stages import declare as declare_stages
 from pipeline.studies.single_target import SingleTargetStudy, flags_from_table
+from pipeline.storage.run_tables import STAGE_KEYS
 from pipeline.storage.store import (StageCache, atomic_write_parquet, atomic_write_text, inside, package_version, publish,
                             read_table, stable_hash)
 from pipeline.storage.keys import stage_key
@@ -86,9 +87,11 @@ def _now() -> str:
 
 def write_status(ctx: RunContext, experiment: str, status: str, *, config_hash: str = "", runs: int | None = None,
                  error: str | None = None, started_at: str | None = None, detail: str | None = None,
-                 peak_rss_mb: float | None = None) -> None:
+                 peak_rss_mb: float | None = None, stage_keys: dict[str, str] | None = None) -> None:
     """``peak_rss_mb``: the job's process's peak memory when another process writes its status (the
-    launcher, for a job whose process died); by default this process's."""
+    launcher, for a job whose process died); by default this process's. ``stage_keys``: the cache key of
+    each stage table the run folder holds, by its name there (``estimates/fsimm.parquet``), for readers
+    to check each table against its name (pipeline.storage.run_tables)."""
     path = ctx.run_dir / "status.json"
     previous = json.loads(path.read_text()) if path.exists() else {}
     record = {
@@ -104,6 +107,8 @@ def write_status(ctx: RunContext, experiment: str, status: str, *, config_hash: 
         # the software it ran with: the lock's hash, the direct dependencies' versions and any that differ
         "environment": environment(),
     }
+    if stage_keys:
+        record[STAGE_KEYS] = dict(stage_keys)
     if detail:
         record["traceback"] = detail
     try:
@@ -409,6 +414,7 @@ def run_experiment(cfg: DictConfig, ctx: RunContext) -> RunOutcome:
     # config subtree, its inputs' keys and the import closure of the code that makes its table
     outputs: dict[str, Any] = {}
     keys: dict[str, str] = {}
+    stage_keys: dict[str, str] = {}        # each published stage table's key, by its name in the run folder
     faults: dict[str, dict[str, int]] = {}
     cached: dict[str, bool] = {}
     display = {v: str(getattr(estimators[v], "name", v)) for v in variants}
@@ -430,6 +436,7 @@ def run_experiment(cfg: DictConfig, ctx: RunContext) -> RunOutcome:
             _progress_label(stage, inputs, prepared),
             math.ceil(runs / chunk_runs) if stage.chunks is not None else 1)
         keys[stage.output] = key
+        stage_keys[Path(stage.publish_as).as_posix()] = key
         del inputs
         if stage.output == "truth":       # the windows must fit the scenario before any filtering
             for which in ("windows", "count_windows"):
@@ -499,7 +506,7 @@ def run_experiment(cfg: DictConfig, ctx: RunContext) -> RunOutcome:
                 seed=seed, config_text=OmegaConf.to_yaml(cfg, resolve=True),
                 description=str(cfg.get("description", ""))))
         log.info("[record] recording.rrd (runs %s), %.2f s", record_runs, time.perf_counter() - started)
-    write_status(ctx, experiment, "ok", config_hash=config_hash, runs=runs)
+    write_status(ctx, experiment, "ok", config_hash=config_hash, runs=runs, stage_keys=stage_keys)
     log.info("done in %.2f s", time.perf_counter() - total_started)
     return RunOutcome(summary, metrics, text, evaluated.comparisons)
 
