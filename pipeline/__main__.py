@@ -10,11 +10,13 @@ value for the sweeper; a job without one (failed, or NaN) returns None (pipeline
 from __future__ import annotations
 
 import logging
+import os
 import sys
 from pathlib import Path
 
 import hydra
 from hydra.core.hydra_config import HydraConfig
+from hydra.errors import HydraException
 from hydra.types import RunMode
 from omegaconf import DictConfig
 
@@ -128,12 +130,31 @@ def entry() -> None:
     any callback ran; our own refusals exit 2; a bug keeps Python's 1 with its traceback."""
     from pipeline.launch import folders
     register_isolated_launcher()
+    # Hydra prints its own text for a command line it refuses (an unknown key, a missing option);
+    # asked to raise instead, its refusal becomes our paragraph with the close names
+    # (pipeline.launch.refusals). HYDRA_FULL_ERROR=1 set by the user keeps Hydra's full traceback.
+    explained = os.environ.get("HYDRA_FULL_ERROR") != "1"
+    before = os.environ.get("HYDRA_FULL_ERROR")
+    if explained:
+        os.environ["HYDRA_FULL_ERROR"] = "1"
     try:
         main()
     except SystemExit as exc:
         if exc.code == 1 and not folders.COMPOSED:
             sys.exit(2)
         raise
+    except HydraException as exc:
+        if not explained or folders.COMPOSED:
+            raise
+        from pipeline.launch.refusals import explain
+        print(f"error: {explain(exc, sys.argv[1:])}", file=sys.stderr)
+        sys.exit(2)
+    finally:
+        if explained:
+            if before is None:
+                os.environ.pop("HYDRA_FULL_ERROR", None)
+            else:
+                os.environ["HYDRA_FULL_ERROR"] = before
 
 
 if __name__ == "__main__":

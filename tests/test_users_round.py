@@ -6,6 +6,8 @@ a stored run into the artifacts tree."""
 
 from __future__ import annotations
 
+import pytest
+
 from tests.conftest import composed
 
 
@@ -33,3 +35,34 @@ def test_an_integral_number_typed_as_int_or_float_gives_one_cache_key():
     as_int, as_float = _stage_keys("sensors.noise_std=20"), _stage_keys("sensors.noise_std=20.0")
     assert as_int == as_float
     assert _stage_keys("sensors.noise_std=20.5")["detections"] != as_int["detections"]   # a value still counts
+
+
+# ---- (e) a typo in a key or an option gets the close names, one paragraph -------------------------------
+
+def _cli(tmp_path, *args: str):
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+    env = {**os.environ, "HYDRA_FULL_ERROR": "0", "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
+    return subprocess.run([sys.executable, "-m", "pipeline", f"paths.artifacts={tmp_path}", *args], cwd=tmp_path,
+                          capture_output=True, text=True, timeout=120, env=env)
+
+
+@pytest.mark.parametrize("args, says", [
+    (("sensors.noise_stdd=20",), "error: sensors.noise_stdd=20: 'sensors' has no key 'noise_stdd'. Did you mean "
+                                 "'noise_std'?"),
+    (("experiment=mie_loss",), "error: experiment=mie_loss: conf/experiment/ has no option 'mie_loss'. Did you "
+                               "mean 'mie_los'?"),
+    (("+filter@filters.x=fsim",), "conf/filter/ has no option 'fsim'. Did you mean 'fsimm'"),
+    (("filterz.fsimm.name=x",), "the config's top level has no key 'filterz'. Did you mean 'filters'?"),
+])
+def test_a_typo_in_a_key_or_an_option_names_the_close_ones(tmp_path, args, says):
+    """Before: Hydra's own text (``Key 'noise_stdd' is not in struct``, ``full_key``, ``object_type``, a
+    list of every option) without the close names."""
+    proc = _cli(tmp_path, *args)
+    assert proc.returncode == 2, proc.stderr
+    assert says in proc.stderr, proc.stderr
+    assert "Traceback" not in proc.stderr and "object_type" not in proc.stderr
+    assert len(proc.stderr.strip().splitlines()) == 1              # one paragraph
+    assert not (tmp_path / "runs").exists()
