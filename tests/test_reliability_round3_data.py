@@ -225,3 +225,125 @@ def test_temp_files_of_killed_jobs_are_removed_from_the_cache_and_a_live_writers
     StageCache(cache).load("track", "abc", "estimates")           # its writer gone now: removed too
     assert not alive_tmp.exists() and own.tmp.is_file()
     own.abort()
+
+
+# ---- item 17: one paragraph, exit 2, for what a user or the machine did -----------------------------
+
+def test_a_full_disk_during_the_track_stages_cache_write_is_one_paragraph(tmp_path, monkeypatch, capsys):
+    """Item 17: polars reports a full disk as ``ComputeError: ... (os error 28)``, which went through as
+    a traceback with exit 1 (an OSError was the only write failure handled)."""
+    from pipeline.storage.store import META_KEY
+    from pipeline.storage.schemas import META_TABLE
+    real = pl.DataFrame.write_parquet
+
+    def write_parquet(self, file, *args, metadata=None, **kwargs):
+        if metadata and META_KEY in metadata and metadata.get(META_TABLE) not in ("truth", "detections"):
+            real(self, file, *args, metadata=metadata, **kwargs)     # some bytes out, then the disk is full
+            raise pl.exceptions.ComputeError("parquet: File out of specification: underlying IO error: No space "
+                                             "left on device (os error 28)")
+        return real(self, file, *args, metadata=metadata, **kwargs)
+
+    monkeypatch.setattr(pl.DataFrame, "write_parquet", write_parquet)
+    cfg, ctx = _job(tmp_path, "full", "mc.runs=2", "scenario.steps=20")
+    assert _as_the_cli_runs_it(cfg, ctx) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith(f"error: cannot write {tmp_path / 'cache' / 'track'}/") and "\n" not in err
+    assert "No space left on device. The disk is full" in err
+    assert not list((tmp_path / "cache" / "track").glob("*.parquet"))
+    assert not [p for p in tmp_path.rglob("*") if p.name.endswith(".tmp")]
+    assert json.loads((ctx.run_dir / "status.json").read_text())["status"] == "failed"
+
+
+def test_a_damaged_file_in_a_read_only_cache_is_one_paragraph(tmp_path, monkeypatch, capsys):
+    """Item 17: a damaged cache file on a read-only cache raised the lock's OSError with a traceback."""
+    import errno
+
+    from pipeline.run.runner import run_experiment
+    from pipeline.storage import store
+    run_experiment(*_job(tmp_path, "first", "mc.runs=2", "scenario.steps=20"))
+    (cached,) = (tmp_path / "cache" / "scenario").glob("*.parquet")
+    data = bytearray(cached.read_bytes())
+    data[len(data) // 2] ^= 0xFF                                      # a flipped byte in a data page
+    cached.write_bytes(bytes(data))
+
+    def read_only(directory):
+        raise OSError(errno.EROFS, os.strerror(errno.EROFS), str(directory / ".lock"))
+
+    monkeypatch.setattr(store, "_renames_locked", read_only)
+    cfg, ctx = _job(tmp_path, "second", "mc.runs=2", "scenario.steps=20")
+    assert _as_the_cli_runs_it(cfg, ctx) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith(f"error: cache file {cached} cannot be used: ") and "\n" not in err
+    assert "It cannot be moved aside and the stage recomputed into the cache: cannot write in " in err
+    assert "Read-only file system. That file system is read-only" in err
+    assert cached.read_bytes() == bytes(data)                        # left as it was
+
+
+def _two_runs(tmp_path: Path) -> list[Path]:
+    from pipeline.run.runner import run_experiment
+    folders = []
+    for name in ("a", "b"):
+        cfg, ctx = _job(tmp_path, name, "mc.runs=2", "scenario.steps=20")
+        run_experiment(cfg, ctx)
+        folders.append(ctx.run_dir)
+    return folders
+
+
+def test_a_run_folder_deleted_while_a_query_reads_it_is_left_out_with_a_warning(tmp_path, monkeypatch):
+    """Item 17: a run folder removed between the query's listing and its reading raised polars'
+    FileNotFoundError with a traceback."""
+    import shutil
+
+    from pipeline.results import query as q
+    kept, removed = _two_runs(tmp_path)
+    real = q._execute
+    warnings = []
+
+    def remove_then_execute(sql, tables):
+        shutil.rmtree(removed, ignore_errors=True)      # after the catalog listed and checked its files
+        return real(sql, tables)
+
+    monkeypatch.setattr(q, "_execute", remove_then_execute)
+    out = q.query("SELECT DISTINCT run_id FROM summary", root=tmp_path, warn=warnings.append)
+    assert out["run_id"].to_list() == ["runs/a"]
+    assert any(f"skipping {removed / 'summary.parquet'}: it was removed while the query read it" in w
+               for w in warnings)
+
+
+def test_a_table_function_on_a_missing_file_is_a_query_error(tmp_path):
+    """Item 17: ``"read_ipc"('<missing>')`` (a quoted name, past the text check) ended in polars'
+    FileNotFoundError with a traceback; whatever refuses it, it is one QueryError."""
+    from pipeline.results.query import QueryError, query
+    _two_runs(tmp_path)
+    with pytest.raises(QueryError):
+        query(f"""SELECT * FROM "read_ipc"('{tmp_path / "missing.arrow"}')""", root=tmp_path)
+
+
+@pytest.mark.parametrize("text, holds", [("- a\n- b\n", "holds a list: ['a', 'b']"),
+                                         ("just a string\n", "holds a mapping without '# @package _global_'"),
+                                         ("mc:\n  runs: 2\n", "holds a mapping without '# @package _global_'")])
+def test_an_experiment_file_that_is_not_a_global_mapping_is_one_paragraph(tmp_path, text, holds):
+    """Item 17: an experiment YAML holding a list or a string failed with a traceback (the run folder's
+    name interpolates experiment_name, which it never set)."""
+    (tmp_path / "extra" / "experiment").mkdir(parents=True)
+    (tmp_path / "extra" / "experiment" / "odd.yaml").write_text(text)
+    proc = cli(tmp_path, f"--config-dir={tmp_path / 'extra'}", "experiment=odd", "mc.runs=2")
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr
+    (line,) = proc.stderr.strip().splitlines()
+    assert line.startswith(f"error: experiment=odd: conf/experiment/odd.yaml (or the --config-dir file of that "
+                           f"name) {holds}") and "'# @package _global_' and which sets experiment_name" in line
+    assert not (tmp_path / "runs").exists()
+
+
+@pytest.mark.parametrize("seed", [2**63, 2**70])
+def test_a_seed_beyond_64_bits_is_refused_up_front(tmp_path, seed):
+    """Item 17: mc.seed=2**70 ran every stage, then failed writing the summary (polars: cannot convert i128)."""
+    from pipeline.errors import ConfigError
+    from pipeline.run.config import validate
+    from pipeline.run.runner import run_experiment
+    with pytest.raises(ConfigError, match=rf"mc.seed: {seed} is not allowed; the seed must be an integer from 0 to "
+                                          rf"{2**63 - 1} \(2\*\*63 - 1"):
+        run_experiment(*_job(tmp_path, "bad", "mc.runs=2", f"mc.seed={seed}"))
+    assert not (tmp_path / "cache").exists()
+    cfg, _ = _job(tmp_path, "largest", "mc.runs=2", f"mc.seed={2**63 - 1}")
+    validate(cfg)                                                      # the largest is allowed

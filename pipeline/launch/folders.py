@@ -21,7 +21,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from hydra.experimental.callback import Callback
-from omegaconf import DictConfig
+from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from pipeline.errors import cannot_write
 
@@ -105,10 +105,36 @@ def check_writable(folder: Path, key: str, value: object) -> None:
         sys.exit(2)
 
 
+def check_experiment(config: DictConfig) -> None:
+    """The experiment file placed its keys at the top level and set ``experiment_name``; else print one
+    paragraph naming the file and what it holds, and exit 2. A file without ``# @package _global_`` (a
+    list, a string, a mapping) lands under an ``experiment`` key, and the run folder's name, which
+    interpolates ``experiment_name``, then fails in Hydra with a traceback."""
+    choices = config.hydra.runtime.get("choices") or {}
+    name = choices.get("experiment")
+    where = f"experiment={name}: conf/experiment/{name}.yaml (or the --config-dir file of that name)" if name \
+        else "experiment=null: the config"
+    misplaced = config.get("experiment") if "experiment" in config else None
+    if "experiment" in config:
+        kind = ("a list" if isinstance(misplaced, ListConfig) else "a mapping without '# @package _global_'"
+                if isinstance(misplaced, DictConfig) else f"a {type(misplaced).__name__} ({misplaced!r})")
+        shown = repr(OmegaConf.to_container(misplaced) if isinstance(misplaced, (DictConfig, ListConfig)) else misplaced)
+        problem = f"holds {kind}: {shown[:80]}{' ...' if len(shown) > 80 else ''}"
+    elif OmegaConf.is_missing(config, "experiment_name"):
+        problem = "does not set experiment_name"
+    else:
+        return
+    print(f"error: {where} {problem}; an experiment file is a mapping of config keys whose first line is "
+          f"'# @package _global_' and which sets experiment_name (see conf/experiment/ao_vsimm_s1.yaml).",
+          file=sys.stderr)
+    sys.exit(2)
+
+
 class OutputFolders(Callback):
     def _check(self, config: DictConfig, output: str) -> None:
         global COMPOSED
         COMPOSED = True
+        check_experiment(config)
         cwd = Path(str(config.hydra.runtime.cwd))
         artifacts = config.paths.artifacts
         check_writable(cwd / str(artifacts), "paths.artifacts", artifacts)
@@ -116,6 +142,7 @@ class OutputFolders(Callback):
 
     def on_run_start(self, config: DictConfig, **kwargs) -> None:
         global BEFORE
+        check_experiment(config)      # before hydra.run.dir, which interpolates experiment_name, is read
         # before anything is made (check_writable makes the run folder's parent): what was there
         BEFORE = folder_before(Path(str(config.hydra.runtime.cwd)) / str(config.hydra.run.dir))
         self._check(config, str(config.hydra.run.dir))

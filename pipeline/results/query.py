@@ -488,6 +488,9 @@ class _ParquetTable:
         for f in self.files:
             try:
                 pl.read_parquet(f)
+            except FileNotFoundError:
+                warn(f"skipping {f}: it was removed while the query read it")
+                bad.add(f)
             except Exception as e:  # noqa: BLE001
                 warn(f"skipping corrupt {f}: {_one_line(e)}")
                 bad.add(f)
@@ -789,14 +792,15 @@ def _run_sql(sql: str, cat: _Catalog, warn: Warn) -> pl.DataFrame:
         result = _execute(sql, tables)
         check_literals(sql, tables, warn)
         return result
-    except pl.exceptions.PolarsError as e:
+    except (pl.exceptions.PolarsError, OSError) as e:
         # A file whose footer reads fine but whose data pages are damaged fails only at
-        # collect time, without a file name: find it, skip it, run again.
+        # collect time, without a file name, and so does one removed since (a run folder deleted
+        # while the query ran, polars' FileNotFoundError): find it, skip it, run again.
         if _is_file_error(e) and any([t.validate(warn) for t in cat.tables.values()]):
             tables = cat.lazy(names)
             try:
                 return _execute(sql, tables)
-            except pl.exceptions.PolarsError as e2:
+            except (pl.exceptions.PolarsError, OSError) as e2:
                 raise _sql_error(e2, sql, tables) from None
         raise _sql_error(e, sql, tables) from None
 

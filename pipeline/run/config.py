@@ -25,6 +25,9 @@ from omegaconf import DictConfig, ListConfig, OmegaConf
 from pipeline.errors import ConfigError
 
 
+SEED_MAX = 2**63 - 1       # mc.seed is an Int64 column of the summary and every config-keyed table
+
+
 def _is_int(value: Any) -> bool:
     return isinstance(value, int) and not isinstance(value, bool)
 
@@ -89,8 +92,9 @@ def validate(cfg: DictConfig) -> None:
     if not _is_int(runs) or runs < 1:
         raise ConfigError(f"mc.runs: {runs!r} is not allowed; the number of Monte Carlo runs must be an integer >= 1.")
     seed = cfg.mc.seed
-    if not _is_int(seed) or seed < 0:
-        raise ConfigError(f"mc.seed: {seed!r} is not allowed; the seed must be an integer >= 0.")
+    if not _is_int(seed) or not 0 <= seed <= SEED_MAX:
+        raise ConfigError(f"mc.seed: {seed!r} is not allowed; the seed must be an integer from 0 to {SEED_MAX} "
+                          f"(2**63 - 1: it is stored as a 64-bit column of every table).")
     chunk = cfg.mc.get("chunk_runs")
     if chunk is not None and (not _is_int(chunk) or chunk < 1):
         raise ConfigError(f"mc.chunk_runs: {chunk!r} is not allowed; it must be an integer >= 1 (runs filtered "

@@ -58,7 +58,7 @@ try:
 except ImportError:    # not POSIX (Windows): renames are not serialised across processes there
     fcntl = None
 
-from pipeline.errors import cannot_write
+from pipeline.errors import StorageError, cannot_write
 from pipeline.storage.schemas import META_TABLE, META_VERSION, SCHEMA_VERSION
 
 META_KEY = "mtt.cache_key"
@@ -587,17 +587,21 @@ class StageCache:
         every store's rename also takes).
         """
         aside = path.with_name(f"{path.name}.{time.strftime('%Y%m%d-%H%M%S')}.{uuid.uuid4().hex[:6]}.rejected")
-        with _renames_locked(path.parent):
-            try:
-                current = os.stat(path)
-            except FileNotFoundError:
-                current = None
-            if current is None or (found is not None and not os.path.samestat(current, found)):
-                log.warning("cache file %s was not used: %s. Another job has already moved it aside%s; "
-                            "the stage is recomputed.", path, problem,
-                            "" if current is None else " and stored a new one")
-                return
-            os.replace(path, aside)
+        try:
+            with _renames_locked(path.parent):
+                try:
+                    current = os.stat(path)
+                except FileNotFoundError:
+                    current = None
+                if current is None or (found is not None and not os.path.samestat(current, found)):
+                    log.warning("cache file %s was not used: %s. Another job has already moved it aside%s; "
+                                "the stage is recomputed.", path, problem,
+                                "" if current is None else " and stored a new one")
+                    return
+                os.replace(path, aside)
+        except OSError as exc:     # a read-only cache: the file can be neither moved aside nor recomputed there
+            raise StorageError(f"cache file {path} cannot be used: {problem}. It cannot be moved aside and the stage "
+                               f"recomputed into the cache: {cannot_write(path.parent, exc, 'write in')}") from None
         log.warning("cache file %s was not used: %s. It was moved to %s and the stage is recomputed.",
                     path, problem, aside.name)
 
