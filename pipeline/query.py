@@ -4,7 +4,7 @@
 import sys
 
 from pipeline.results.query import *  # noqa: F401,F403
-from pipeline.results.query import main
+from pipeline.results.cli import main    # the query and tracking commands, as mtt-query
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -72,7 +72,7 @@ import sys
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Iterable, Mapping, Sequence
+from typing import Any, Callable, Iterable, Mapping, Sequence
 
 import polars as pl
 
@@ -1014,7 +1014,12 @@ column per config leaf named by its dotted key), metrics (every metrics.parquet:
 series), runs (one row per run/job from status.json; the `list` frame), per_run, comparisons
 (and truth, estimates when named). `mtt-query tables` lists each experiment's variants, metrics
 and windows first. A string compared with a name column (metric = 'pos_rmse') that is none of its
-values is warned about on stderr, with the close names."""
+values is warned about on stderr, with the close names.
+
+Tracking (pipeline.results.tracking): `runs` lists runs with the code that made them (commit,
+dirty flag, code hash), their tags and notes; `diff RUN_A RUN_B` shows what differs (config, code,
+every metric's difference paired by Monte Carlo run where the data match); `tag`, `note`, `rm`;
+`gc` frees unreferenced cache entries; `export-mlflow` writes runs into an MLflow store."""
 
 SQL_EPILOG = """\
 quoting:
@@ -1056,12 +1061,15 @@ def _common(p: argparse.ArgumentParser, *, fmt: bool = True) -> None:
                             f"(default {DEFAULT_MAX_ROWS}; 0 = all). csv/markdown print all.")
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(more: Any = None) -> argparse.ArgumentParser:
+    """``mtt-query``'s parser; ``more``: a module adding commands (``add_commands(subparsers)``;
+    pipeline.results.cli passes the tracking commands)."""
     parser = argparse.ArgumentParser(prog="mtt-query", description=DESCRIPTION,
                                      formatter_class=argparse.RawDescriptionHelpFormatter,
                                      epilog=f"example:\n  mtt-query sql - <<'SQL'\n  {EXAMPLE_SQL}\n  SQL\n\n"
                                             "`mtt-query sql -h` explains quoting.")
-    sub = parser.add_subparsers(dest="command", metavar="{list,tables,sql}", required=True)
+    sub = parser.add_subparsers(dest="command", required=True,
+                                metavar="{list,tables,sql,runs,diff,tag,note,rm,gc,export-mlflow}")
     p = sub.add_parser("list", help="runs and multirun jobs with their status (from status.json)",
                        description="One row per run/job: run_id, experiment, kind, sweep, job_num, "
                                    "status, started_at, runs, overrides, error (one line; the last "
@@ -1084,6 +1092,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("query", nargs="?", help="the SQL query; '-' reads it from stdin")
     p.add_argument("--file", "-f", type=Path, help="read the SQL query from this file")
     _common(p)
+    if more is not None:
+        more.add_commands(sub)
     return parser
 
 
@@ -1121,11 +1131,15 @@ def _run(args: argparse.Namespace) -> pl.DataFrame:
     return _run_sql(sql, _catalog(args.root, args.sweep, args.run, _stderr_warn), _stderr_warn)
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point of ``mtt-query`` / ``python -m pipeline.query``. Returns the exit code:
-    0 on success, 2 on bad input (message on stderr, no traceback)."""
-    args = build_parser().parse_args(argv)   # argparse itself exits 2 on bad options
+def main(argv: Sequence[str] | None = None, more: Any = None) -> int:
+    """The query commands (``list``, ``tables``, ``sql``) and, with ``more`` (a module with
+    ``add_commands``, ``COMMANDS`` and ``run_command``), its commands too: ``mtt-query`` is
+    pipeline.results.cli's main, which passes the tracking commands. Returns the exit code: 0 on
+    success, 2 on bad input (message on stderr, no traceback)."""
+    args = build_parser(more).parse_args(argv)   # argparse itself exits 2 on bad options
     try:
+        if more is not None and args.command in more.COMMANDS:
+            return more.run_command(args)
         if args.command == "tables":
             frames = tables_overview(args.root, args.sweep, args.run, config=True, warn=_stderr_warn)
             shown = frames["columns"].filter(pl.col("table") == "summary")["column"]

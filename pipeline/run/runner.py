@@ -26,9 +26,10 @@ import polars as pl
 from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
-from pipeline.storage import schemas
+from pipeline.storage import fingerprint, schemas
 from pipeline.contract import RecordingInputs, Study
 from pipeline.run.config import build, check_objective, compute_reference, flatten, selected_variants, validate
+from pipeline.run import provenance as provenance_of_run
 from pipeline.run.environment import environment, table_metadata as environment_metadata
 from pipeline.errors import ConfigError, StorageError
 from pipeline.storage.estimates import StoredEstimates, recorded_runs
@@ -87,11 +88,15 @@ def _now() -> str:
 
 def write_status(ctx: RunContext, experiment: str, status: str, *, config_hash: str = "", runs: int | None = None,
                  error: str | None = None, started_at: str | None = None, detail: str | None = None,
-                 peak_rss_mb: float | None = None, stage_keys: dict[str, str] | None = None) -> None:
+                 peak_rss_mb: float | None = None, provenance: dict | None = None,
+                 stage_keys: Mapping[str, str] | None = None) -> None:
     """``peak_rss_mb``: the job's process's peak memory when another process writes its status (the
     launcher, for a job whose process died); by default this process's. ``stage_keys``: the cache key of
     each stage table the run folder holds, by its name there (``estimates/fsimm.parquet``), for readers
-    to check each table against its name (pipeline.storage.run_tables)."""
+    to check each table against its name (pipeline.storage.run_tables), ``mtt-query diff`` to pair runs
+    by and ``mtt-query gc`` to keep; written as the stages finish. ``provenance``
+    (pipeline.run.provenance): which code made the run. Both are kept from the previous status when
+    not given."""
     path = ctx.run_dir / "status.json"
     previous = json.loads(path.read_text()) if path.exists() else {}
     record = {
@@ -106,9 +111,10 @@ def write_status(ctx: RunContext, experiment: str, status: str, *, config_hash: 
         "process": process_identity(),
         # the software it ran with: the lock's hash, the direct dependencies' versions and any that differ
         "environment": environment(),
+        # which code made it (git commit, dirty diff, user packages) and how it was called
+        "provenance": provenance if provenance is not None else previous.get("provenance"),
+        STAGE_KEYS: dict(stage_keys) if stage_keys is not None else previous.get(STAGE_KEYS, {}),
     }
-    if stage_keys:
-        record[STAGE_KEYS] = dict(stage_keys)
     if detail:
         record["traceback"] = detail
     try:
@@ -396,8 +402,11 @@ def run_experiment(cfg: DictConfig, ctx: RunContext) -> RunOutcome:
     runs, seed = int(cfg.mc.runs), int(cfg.mc.seed)
     memory = check_memory(cfg, prepared.scenario, prepared.sensor, len(prepared.variants))   # before any work
     ctx.run_dir.mkdir(parents=True, exist_ok=True)
-    write_status(ctx, experiment, "running", config_hash=config_hash, runs=runs)
+    write_status(ctx, experiment, "running", config_hash=config_hash, runs=runs, provenance={}, stage_keys={})
     ctx.started = True             # from here on a failure is this job's to record in its folder
+    run_provenance = provenance_of_run.record(ctx.run_dir, resolved, ctx.overrides,
+                                              fingerprint.producers(resolved, "pipeline.run.runner"))
+    write_status(ctx, experiment, "running", config_hash=config_hash, runs=runs, provenance=run_provenance)
     atomic_write_text(OmegaConf.to_yaml(cfg, resolve=True), ctx.run_dir / "config.yaml")
     variants = prepared.variants
     log.info("experiment %s: %d Monte Carlo runs, seed %d, variants %s -> %s", experiment, runs, seed, variants, ctx.run_dir)
@@ -405,7 +414,7 @@ def run_experiment(cfg: DictConfig, ctx: RunContext) -> RunOutcome:
     study, sensor, estimators = prepared.study, prepared.sensor, prepared.estimators
     cache = StageCache(ctx.artifacts / "cache", enabled=bool(cfg.cache.enabled))
     provenance = {"mtt.experiment": experiment, "mtt.config_hash": config_hash, "mtt.package_version": package_version(),
-                  **environment_metadata()}
+                  **environment_metadata(), **provenance_of_run.table_metadata(run_provenance)}
     # a bar on a terminal, plain lines in a pipe or a sweep, nothing for a stage under 2 s
     progress = Reporter(choose_mode(sys.stderr, multirun=ctx.job_num is not None))
     stages = _Stages(cache, ctx, provenance, link=cfg.cache.get("publish", "copy") == "link", progress=progress)
@@ -437,6 +446,7 @@ def run_experiment(cfg: DictConfig, ctx: RunContext) -> RunOutcome:
             math.ceil(runs / chunk_runs) if stage.chunks is not None else 1)
         keys[stage.output] = key
         stage_keys[Path(stage.publish_as).as_posix()] = key
+        write_status(ctx, experiment, "running", config_hash=config_hash, runs=runs, stage_keys=stage_keys)
         del inputs
         if stage.output == "truth":       # the windows must fit the scenario before any filtering
             for which in ("windows", "count_windows"):

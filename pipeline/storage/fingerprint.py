@@ -229,8 +229,9 @@ def _resolve(name: str, level: int, importer: str, is_package: bool) -> str:
     return f"{package}.{name}" if name else package
 
 
-def _closure(roots: Iterable[str]) -> tuple[dict[str, str], set[str]]:
-    """(module -> content hash for the followed modules, external top-level packages seen)."""
+def _closure(roots: Iterable[str], paths: dict[str, str] | None = None) -> tuple[dict[str, str], set[str]]:
+    """(module -> content hash for the followed modules, external top-level packages seen); with
+    ``paths``, each followed module's real file path is put there too."""
     hashed: dict[str, str] = {}
     external: set[str] = set()
     stack = [r for r in roots if r]
@@ -261,6 +262,8 @@ def _closure(roots: Iterable[str]) -> tuple[dict[str, str], set[str]]:
         stat = os.stat(real)
         digest, imports = _parsed(real, stat.st_size, stat.st_mtime_ns)
         hashed[name] = digest
+        if paths is not None:
+            paths[name] = real
         if "." in name:                   # importing a.b runs a/__init__.py first
             stack.append(name.rpartition(".")[0])
         for imported, level in imports:
@@ -283,6 +286,14 @@ def source_fingerprint(modules: Iterable[str]) -> str:
 def closure_modules(modules: Iterable[str]) -> list[str]:
     """The followed (hashed) modules of the closure, for inspection and tests."""
     return sorted(_closure(sorted(set(modules)))[0])
+
+
+def closure_files(modules: Iterable[str]) -> dict[str, tuple[str, str]]:
+    """``module -> (real path of its file, sha256 of its content)`` for every followed module of the
+    closure of ``modules`` (pipeline.run.provenance: which user code outside git made a run)."""
+    paths: dict[str, str] = {}
+    hashed, _ = _closure(sorted(set(modules)), paths)
+    return {name: (paths[name], hashed[name]) for name in sorted(hashed)}
 
 
 def producers(config: Any, *modules: str) -> list[str]:

@@ -287,6 +287,21 @@ def remove_orphans(folder: Path) -> list[tuple[Path, int]]:
     return removed
 
 
+def unlink_if_unchanged(path: Path, seen: os.stat_result) -> bool:
+    """Remove ``path`` if it is still the file ``seen`` described (same inode, size and mtime), under
+    its folder's rename lock: a store that renames a new file onto the name meanwhile keeps it
+    (``mtt-query gc``). True if removed."""
+    with _renames_locked(path.parent):
+        try:
+            now = os.stat(path)
+        except FileNotFoundError:
+            return False
+        if (now.st_ino, now.st_size, now.st_mtime_ns) != (seen.st_ino, seen.st_size, seen.st_mtime_ns):
+            return False
+        os.unlink(path)
+        return True
+
+
 def _temp_beside(path: Path) -> tuple[int, str]:
     """(fd, name) of a new hidden temp file in ``path``'s folder (made if missing), which no
     ``*.parquet`` glob matches and which names its writer (``writer_tag``); an OSError becomes a
