@@ -18,7 +18,7 @@ compile() {   # compile OUTPUT [uv pip compile arguments...]
   # the command that made it, without this machine's paths: the next refresh reads the same
   sed -i.bak "1i # $out: made by tools/refresh_locks.sh (uv pip compile $*); do not edit by hand" "$out" && rm -f "$out.bak"
 }
-compile lock/ci.txt --extra test --extra distributed --extra tune --extra slurm --extra stonesoup
+compile lock/ci.txt --extra test --extra distributed --extra tune --extra slurm --extra stonesoup --extra mlflow
 compile lock/core.txt -c lock/ci.txt
 compile lock/bench.txt --extra bench -c lock/ci.txt
 compile lock/adsb.txt --extra adsb -c lock/ci.txt
