@@ -365,3 +365,24 @@ def test_gc_while_a_job_runs_loses_nothing(tmp_path):
     # and a later gc still keeps what the finished run refers to
     assert gc.plan(tmp_path, grace_s=0).entries == []
     del cli
+
+
+def test_two_sweeps_are_diffed_job_by_job_paired_by_their_swept_values(edited_runs, capsys):
+    root, a, b, _ = edited_runs
+    for sweep, source, swept in (("A", a, ("x=1", "x=2")), ("B", b, ("x=2", "x=1", "x=3"))):
+        for job, value in enumerate(swept):
+            folder = root / "multirun" / sweep / str(job)
+            shutil.copytree(source, folder)
+            status = json.loads((folder / "status.json").read_text())
+            status["overrides"] = ["mc.runs=6", value]          # mc.runs: the same in every job, not swept
+            (folder / "status.json").write_text(json.dumps(status))
+    comparison = run_diff.compare(root, "multirun/A", "multirun/B")
+    assert [p.job for p in comparison.pairs] == ["x=1", "x=2"]
+    assert [(p.a.run_id, p.b.run_id) for p in comparison.pairs] == [("multirun/A/0", "multirun/B/1"),
+                                                                    ("multirun/A/1", "multirun/B/0")]
+    assert comparison.unmatched == {"a": [], "b": ["x=3"]}
+    assert all(p.pairing.startswith("paired by run") and p.metrics.height for p in comparison.pairs)
+    code, out, _ = query("diff", "--root", str(root), "multirun/A", "multirun/B", "--format", "csv", capsys=capsys)
+    table = pl.read_csv(out.encode())
+    assert code == 0 and set(table["job"]) == {"x=1", "x=2"} and run_diff.PAIRED in set(table["pairing"])
+    assert all(kind.startswith(run_diff.PAIRED) for kind in table["pairing"])
