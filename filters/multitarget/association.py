@@ -44,16 +44,15 @@ def gate(zhat: np.ndarray, S: np.ndarray, z: np.ndarray, valid: np.ndarray, aliv
 def gnn_assign(cost: np.ndarray, gated: np.ndarray) -> np.ndarray:
     """(R, M) the detection assigned to each track slot, -1 for none (module docstring)."""
     R, M, D = gated.shape
-    assigned = np.full((R, M), -1, dtype=np.int64)
-    for r in np.flatnonzero(gated.any(axis=(1, 2))):        # the ragged step: one assignment per run
-        rows = np.flatnonzero(gated[r].any(axis=1))
-        cols = np.flatnonzero(gated[r][rows].any(axis=0))
+    per_track, per_detection = gated.sum(axis=2), gated.sum(axis=1)
+    # a run where no track gates two detections and no detection is gated by two tracks has nothing
+    # to decide: every gated pair is assigned, for all such runs at once
+    plain = (per_track <= 1).all(axis=1) & (per_detection <= 1).all(axis=1)
+    assigned = np.where(plain[:, None] & (per_track == 1), np.argmax(gated, axis=2), -1).astype(np.int64)
+    for r in np.flatnonzero(~plain):                       # the ragged step: one assignment per run
+        rows = np.flatnonzero(per_track[r])
+        cols = np.flatnonzero(per_detection[r])
         sub_gated = gated[r][np.ix_(rows, cols)]
-        if sub_gated.sum() == len(rows) and (sub_gated.sum(axis=0) == 1).all():
-            # every gated track has one detection nobody else gates: nothing to decide
-            t, i = np.nonzero(sub_gated)
-            assigned[r, rows[t]] = cols[i]
-            continue
         c = cost[r][np.ix_(rows, cols)]
         shift = np.abs(c[sub_gated]).sum() + 1.0
         matrix = np.where(sub_gated, c - shift, 0.0)

@@ -49,17 +49,17 @@ def _positive(value: object, key: str) -> float:
 
 
 def _pda(x, P, H, R, z, beta, beta0):
-    """The PDA update (module docstring) of states x (..., n), P (..., n, n) with detections z
-    (R, D, m) broadcast over the slot axes, beta (..., D), beta0 (...); also returns each
-    detection's log N(z_i; H x, S) (..., D)."""
-    zhat = x[..., H_rows(H)]
-    PHt = P[..., :, H_rows(H)]
-    S = PHt[..., H_rows(H), :] + R
+    """The PDA update (module docstring) of states x (..., n), P (..., n, n) with each track's
+    candidate detections z (..., D, m) (broadcastable: one scan's set for every track, or the one a
+    GNN assigned), beta (..., D), beta0 (...); also returns each candidate's log N(z_i; H x, S)
+    (..., D)."""
+    rows = H_rows(H)
+    zhat = x[..., rows]
+    PHt = P[..., :, rows]
+    S = PHt[..., rows, :] + R
     S_inv, logdet = inverse_and_logdet(S)
     W = PHt @ S_inv
-    extra = x.ndim - 2                                  # axes between the run axis and the state
-    zz = z.reshape(z.shape[:1] + (1,) * extra + z.shape[1:])
-    nu_i = np.nan_to_num(zz - zhat[..., None, :])       # (..., D, m); empty slots have beta 0
+    nu_i = np.nan_to_num(z - zhat[..., None, :])        # (..., D, m); empty slots have beta 0
     b = np.nan_to_num(beta)
     nu = np.einsum("...d,...dm->...m", b, nu_i)
     spread = np.einsum("...d,...dm,...dk->...mk", b, nu_i, nu_i) - nu[..., :, None] * nu[..., None, :]
@@ -117,7 +117,8 @@ class ConstantVelocity:
 
     def update(self, state: dict, z: np.ndarray, noise: np.ndarray, beta: np.ndarray, beta0: np.ndarray,
                weight0: np.ndarray, weights: np.ndarray) -> dict:
-        """PDA update with z (R, D, 2), beta (R, M, D), beta0 (R, M); the mode weights are unused."""
+        """PDA update with each track's candidates z (R, M or 1, D, 2), beta (R, M, D), beta0 (R, M); the
+        mode weights are unused."""
         x, P, _ = _pda(state["x"], state["P"], self.H, noise, z, beta, beta0)
         return {"x": x, "P": P}
 
@@ -185,7 +186,7 @@ class InteractingCVTurn:
                weight0: np.ndarray, weights: np.ndarray) -> dict:
         """Per-mode PDA update with the shared beta; mu_j = c_j Lambda_j / sum (module docstring)."""
         b = beta[:, :, None]                                  # (R, M, 1, D) shared by both modes
-        x, P, loglik = _pda(state["x"], state["P"], self.H, noise, z, b, beta0[:, :, None])
+        x, P, loglik = _pda(state["x"], state["P"], self.H, noise, z[:, :, None], b, beta0[:, :, None])
         with np.errstate(divide="ignore"):
             terms = np.where(weights[:, :, None] > 0, np.log(weights)[:, :, None] + loglik, -np.inf)   # (R, M, 2, D)
             terms = np.concatenate([np.broadcast_to(np.log(weight0)[:, :, None, None], terms.shape[:3] + (1,)),

@@ -140,9 +140,10 @@ class _AssociationTracker(MultiTargetTracker):
                 d2, gated, logdet = gate(zhat, S, zk, vk, alive, self.threshold)
                 if self.association == "gnn":
                     assigned = gnn_assign(d2 + logdet[..., None], gated)
-                    beta = (assigned[..., None] == np.arange(D)).astype(float)
-                    beta0 = (assigned < 0).astype(float)
                     hit = assigned >= 0
+                    candidates = zk[np.arange(R)[:, None], np.maximum(assigned, 0)][:, :, None]   # (R, M, 1, 2)
+                    beta = hit[..., None].astype(float)
+                    beta0 = 1.0 - beta[..., 0]
                     used = np.zeros((R, D), bool)
                     rr, tt = np.nonzero(hit)
                     used[rr, assigned[rr, tt]] = True
@@ -155,7 +156,12 @@ class _AssociationTracker(MultiTargetTracker):
                     used = gated.any(axis=1)
                     weight0 = np.full((R, alive.shape[1]), miss_weight)
                     weights = np.where(gated, self.detection_probability / self.clutter_density, 0.0)
-                state = motion.update(state, zk, noise, beta, beta0, weight0, weights)
+                    # each track's gated detections only (the rest have beta 0): (R, M, widest gate)
+                    width = max(int(gated.sum(axis=2).max()), 1)
+                    pick = np.argsort(~gated, axis=2, kind="stable")[:, :, :width]
+                    candidates = zk[np.arange(R)[:, None, None], pick]
+                    beta, weights = (np.take_along_axis(a, pick, axis=2) for a in (beta, weights))
+                state = motion.update(state, candidates, noise, beta, beta0, weight0, weights)
                 alive, confirmed, hits, age, misses = manage.step(hit, alive, confirmed, hits, age, misses)
             else:
                 used = np.zeros((R, D), bool)
