@@ -34,6 +34,7 @@ if str(ROOT) not in sys.path:
 from hydra import compose, initialize_config_dir  # noqa: E402
 from omegaconf import OmegaConf  # noqa: E402
 
+from benchmarks.results_file import Column, Table, add_results_argument, start, write_result  # noqa: E402
 from pipeline.run.config import build  # noqa: E402
 
 VARIANTS = ("kf_cv", "kf_ca", "kf_singer", "imm_cv_ct")
@@ -57,11 +58,13 @@ def relative_difference(a: np.ndarray, b: np.ndarray) -> float:
 
 
 def main(argv: list[str] | None = None) -> int:
+    context = start("benchmarks/bench_adsb.py", argv)
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--runs", type=int, default=100)
     parser.add_argument("--experiment", default="adsb_jet", help="an ADS-B experiment (adsb_*)")
     parser.add_argument("--repeat", type=int, default=3)
     parser.add_argument("--seed", type=int, default=1)
+    add_results_argument(parser)
     args = parser.parse_args(argv)
     if args.runs < 1 or args.repeat < 1:
         parser.error("--runs and --repeat must be >= 1")
@@ -72,6 +75,7 @@ def main(argv: list[str] | None = None) -> int:
           f"{args.repeat} (filtering only; {platform.machine()}, Python {platform.python_version()})\n")
     print("| filter | compiled | numpy scans | numpy / compiled | max relative difference (state, covariance, NIS) |")
     print("|---|---:|---:|---:|---|")
+    rows = []
     for key in VARIANTS:
         if key not in cfg.filters:
             continue
@@ -87,6 +91,21 @@ def main(argv: list[str] | None = None) -> int:
                        relative_difference(a.extras["nis"], b.extras["nis"]))
         print(f"| {name} | {seconds['numba']:.3f} s | {seconds['numpy']:.3f} s | "
               f"{seconds['numpy'] / seconds['numba']:.1f}x | {', '.join(f'{d:.1e}' for d in differences)} |")
+        rows.append({"filter": name, "compiled": seconds["numba"], "numpy": seconds["numpy"],
+                     "ratio": seconds["numpy"] / seconds["numba"], "state": differences[0],
+                     "covariance": differences[1], "nis": differences[2]})
+    columns = [Column("filter", "filter"), Column("compiled", "compiled", "seconds", ".3f"),
+               Column("numpy", "numpy scans", "seconds", ".3f"), Column("ratio", "numpy / compiled", "ratio", ".1f"),
+               Column("state", "max rel. difference, state", "number", ".1e"),
+               Column("covariance", "covariance", "number", ".1e"), Column("nis", "NIS", "number", ".1e")]
+    write_result(args.experiment, f"ADS-B trackers on {args.experiment}: compiled against numpy scans (filtering only)",
+                 [Table(columns, rows)],
+                 [f"Median of {args.repeat} calls per filter and engine, after one untimed call; the filter's own "
+                  "clock (compute_seconds).",
+                  "Differences: max |compiled - numpy| relative to each output's largest entry."],
+                 context=context, parameters={"experiment": args.experiment, "runs": R, "scans": K,
+                                              "measurements": kind, "seed": args.seed},
+                 directory=args.results_dir)
     return 0
 
 

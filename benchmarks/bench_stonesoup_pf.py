@@ -249,6 +249,9 @@ def position_rmse(states: np.ndarray, truth_states: np.ndarray) -> float:
 
 
 def main(argv=None) -> int:
+    from benchmarks.results_file import Column, Table, add_results_argument, start, write_result
+
+    context = start("benchmarks/bench_stonesoup_pf.py", argv)
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--particles", type=int, default=1000)
     parser.add_argument("--repeats", type=int, default=5, help="timed single-run filterings per filter (median)")
@@ -261,6 +264,7 @@ def main(argv=None) -> int:
                         help="the filters' target process-noise std [m/s^2]: case 2's 0.05 (with case 1's 0.005 "
                              "the unregularised SIR collapses onto a few particles, in both)")
     parser.add_argument("--seed", type=int, default=1)
+    add_results_argument(parser)
     args = parser.parse_args(argv)
     if args.particles < 10 or args.repeats < 1 or args.runs < 2 or not 0 <= args.timed_run < args.runs:
         parser.error("--particles >= 10, --repeats >= 1, --runs >= 2, 0 <= --timed-run < --runs")
@@ -329,6 +333,26 @@ def main(argv=None) -> int:
           f"{mine.mean():.1f} m ours, {theirs.mean():.1f} m Stone Soup (medians {np.median(mine):.1f}, "
           f"{np.median(theirs):.1f}); paired difference {mean:+.1f} m, standard error {se:.1f} m "
           f"(|difference| <= {multiplier:.2f} SE + 2 % = {tolerance:.1f} m: {'OK' if ok else 'FAILED'})")
+    rows = [{"filter": name, "wall": medians[name], "cpu": cpu_medians[name],
+             "vs_compiled": medians[name] / medians["ours, numba"],
+             "cpu_vs_compiled": cpu_medians[name] / cpu_medians["ours, numba"],
+             "per_scan_us": 1e6 * medians[name] / (K - 1)} for name in contestants]
+    columns = [Column("filter", "filter"), Column("wall", "one run", "seconds", ".3f"),
+               Column("vs_compiled", "vs ours compiled", "ratio", ".1f"), Column("cpu", "CPU", "seconds", ".3f"),
+               Column("cpu_vs_compiled", "CPU vs ours compiled", "ratio", ".1f")]
+    write_result("stonesoup_pf", "Stone Soup's particle filter against ours: one-mode bootstrap SIR (filtering only)",
+                 [Table(columns, rows)],
+                 [f"One run, one thread, median of {args.repeats} with the three alternating; CPU: this process's CPU "
+                  "time, less sensitive to other processes on the machine.",
+                  f"The same likelihood: scan 1's weights of the start cloud differ by at most {weights:.1e} of the "
+                  "largest (ours float32).",
+                  f"The same filter over {args.runs} runs: position RMSE mean {mine.mean():.1f} m ours, "
+                  f"{theirs.mean():.1f} m Stone Soup; paired difference {mean:+.1f} m, standard error {se:.1f} m "
+                  f"(tolerance {tolerance:.1f} m): {'OK' if ok else 'FAILED'}."],
+                 context=context, parameters={"particles": args.particles, "scans": K - 1, "buoys": args.buoys,
+                                              "target sigma [m/s^2]": args.target_sigma,
+                                              "accuracy runs": args.runs, "seed": args.seed},
+                 directory=args.results_dir)
     return 0 if ok else 1
 
 

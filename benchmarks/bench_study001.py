@@ -54,6 +54,7 @@ from hydra.utils import get_class, instantiate  # noqa: E402
 from omegaconf import OmegaConf  # noqa: E402
 
 from benchmarks.reference_imm import reference_fsimm  # noqa: E402
+from benchmarks.results_file import Column, Table, add_results_argument, start, write_result  # noqa: E402
 from filters.base import MeasurementSeries  # noqa: E402
 from filters.imm import FSIMM  # noqa: E402
 from pipeline.studies.ao_vsimm.sensor import PositionSensor  # noqa: E402
@@ -174,6 +175,7 @@ def time_loop(fn, meas: MeasurementSeries, runs: int, label: str):
 
 # ---------------------------------------------------------------------------------------------
 def main(argv: list[str] | None = None) -> int:
+    context = start("benchmarks/bench_study001.py", argv)
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--runs", type=int, default=100, help="Monte Carlo runs for the batched estimators")
     parser.add_argument("--seed", type=int, default=1)
@@ -181,6 +183,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--loop-runs", type=int, default=None, help="runs for the reference loop (default: --runs)")
     parser.add_argument("--skip-filterpy", action="store_true")
     parser.add_argument("--json", type=Path, default=ROOT / "artifacts/benchmarks/study001.json")
+    add_results_argument(parser)
     args = parser.parse_args(argv)
     runs = args.runs
     loop_runs = min(args.loop_runs if args.loop_runs is not None else runs, runs)
@@ -277,6 +280,7 @@ def main(argv: list[str] | None = None) -> int:
 
     # ---- derived columns ---------------------------------------------------------------------
     fp_row = next((r for r in rows if r["implementation"].startswith("FilterPy")), None)
+    loop_row = next(r for r in rows if r["implementation"].startswith("reference loop"))
     fs_row = rows[0]
     for r in rows:
         r["seconds_per_run"] = r["seconds"] / r["runs"]
@@ -284,6 +288,7 @@ def main(argv: list[str] | None = None) -> int:
         r["seconds_per_100_runs"] = r["seconds_per_run"] * 100
     for r in rows:
         r["speedup_vs_filterpy"] = (fp_row["seconds_per_run"] / r["seconds_per_run"]) if fp_row else None
+        r["speedup_vs_loop"] = loop_row["seconds_per_run"] / r["seconds_per_run"]
         r["models_pct_of_fsimm"] = 100.0 * r["models_per_step"] / models.n_models
         # CPU share of FSIMM is only meaningful between the batched estimators (same code path, same runs):
         # each engine's rows against that engine's FSIMM
@@ -346,6 +351,23 @@ def main(argv: list[str] | None = None) -> int:
     args.json.parent.mkdir(parents=True, exist_ok=True)
     args.json.write_text(json.dumps(result, indent=2))
     print(f"JSON: {args.json}")
+    table_rows = [{**r, "timed": f"{r['runs']}" + (" (extrapolated)" if r["runs"] != runs else ""),
+                   "rmse_x": r["rmse"][0], "rmse_y": r["rmse"][1]} for r in rows]
+    columns = [Column("implementation", "implementation"), Column("start", "start"),
+               Column("timed", "runs timed"), Column("seconds_at_runs", f"{runs} runs", "seconds", ".3f"),
+               Column("speedup_vs_filterpy", "vs FilterPy", "ratio", ".1f"),
+               Column("speedup_vs_loop", "vs reference loop", "ratio", ".1f"),
+               Column("time_pct_of_fsimm", "time, of FSIMM (same engine)", "percent", ".1f"),
+               Column("models_per_step", "models/step", "number", ".2f"),
+               Column("rmse_x", "acc RMSE X", "number", ".4f"), Column("rmse_y", "acc RMSE Y", "number", ".4f")]
+    check_notes = [f"{'PASS' if c['passed'] else 'FAIL'}: {c['implementation']} vs {c['against']} ({c['runs']} runs): "
+                   f"states rel. difference {c['state_rel_diff']:.1e}, acceleration {c['acceleration_rel_diff']:.1e}"
+                   for c in checks]
+    write_result("study001", "Study 001: the batched IMMs against the reference loop and FilterPy (filtering only)",
+                 [Table(columns, table_rows)], notes + check_notes, context=context,
+                 parameters={"scenario": "S1", "steps": K - 1, "runs": runs, "reference-loop runs": loop_runs,
+                             "FilterPy runs": fp_runs if not args.skip_filterpy else 0, "seed": args.seed},
+                 directory=args.results_dir)
     return 0 if result["all_checks_passed"] else 1
 
 

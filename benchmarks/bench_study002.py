@@ -57,6 +57,7 @@ from hydra import compose, initialize_config_dir  # noqa: E402
 from omegaconf import OmegaConf  # noqa: E402
 
 from benchmarks.reference_bias import reference_pseudo_bias  # noqa: E402
+from benchmarks.results_file import Column, Table, add_results_argument, start, write_result  # noqa: E402
 from filters.bias import RadarReports, TrackStart  # noqa: E402
 from pipeline.run.config import build  # noqa: E402
 
@@ -94,11 +95,13 @@ def first_runs(reports: RadarReports, runs: int) -> RadarReports:
 
 # ---------------------------------------------------------------------------------------------
 def main(argv: list[str] | None = None) -> int:
+    context = start("benchmarks/bench_study002.py", argv)
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--runs", type=int, default=100, help="Monte Carlo runs for the batched variants")
     parser.add_argument("--loop-runs", type=int, default=2, help="runs for the reference loop (extrapolated)")
     parser.add_argument("--repeat", type=int, default=3, help="batched calls per variant (median reported)")
     parser.add_argument("--seed", type=int, default=1)
+    add_results_argument(parser)
     args = parser.parse_args(argv)
     runs, repeat = args.runs, args.repeat
     loop_runs = min(args.loop_runs, runs)
@@ -130,7 +133,8 @@ def main(argv: list[str] | None = None) -> int:
             seconds = statistics.median(times)
             label = "compiled steps" if engine == "numba" else "numpy steps"
             rows.append({"name": f"{est.name}, batched, {label}", "runs": runs, "seconds": seconds,
-                         "per_run": seconds / runs, "at_runs": seconds, "extrapolated": False})
+                         "per_run": seconds / runs, "at_runs": seconds, "extrapolated": False,
+                         "variant": key, "engine": engine})
             print(f"  {key} ({engine}): median {seconds:.3f} s of {[round(t, 3) for t in times]}", file=sys.stderr,
                   flush=True)
 
@@ -222,6 +226,22 @@ def main(argv: list[str] | None = None) -> int:
     print(f"Machine: {platform.platform()}, {platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, "
           f"Python {platform.python_version()}, numpy {np.__version__}"
           + (f", {threads}" if threads else ""))
+    compiled = {r["variant"]: r["at_runs"] for r in rows if r.get("engine") == "numba"}
+    table_rows = [{**r, "timed": f"{r['runs']}" + (" (extrapolated)" if r["extrapolated"] else ""),
+                   "vs_loop": base / r["at_runs"],
+                   "numpy_over_compiled": r["at_runs"] / compiled[r["variant"]] if r.get("engine") == "numpy" else None}
+                  for r in rows]
+    columns = [Column("name", "implementation"), Column("timed", "runs timed"),
+               Column("at_runs", f"{runs} runs", "seconds", ".3f"),
+               Column("vs_loop", "vs reference loop (proposed)", "ratio", ".1f"),
+               Column("numpy_over_compiled", "numpy / compiled steps", "ratio", ".2f")]
+    check_notes = [f"{'PASS' if c['passed'] else 'FAIL'}: {c['what']}: max {c['max_abs']:.2e} {c['unit']} "
+                   f"(tolerance {c['tol']:g})" for c in checks]
+    write_result("study002", "Study 002: batched bias registration against the one-run-one-target loop (estimation only)",
+                 [Table(columns, table_rows)], notes + check_notes, context=context,
+                 parameters={"experiment": "async_bias", "runs": runs, "reference-loop runs": loop_runs,
+                             "targets": T, "radars": S, "reports": K, "seed": args.seed},
+                 directory=args.results_dir)
     return 0 if all(c["passed"] for c in checks) else 1
 
 

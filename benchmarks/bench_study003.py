@@ -24,17 +24,20 @@ if str(ROOT) not in sys.path:
 
 from hydra import compose, initialize_config_dir  # noqa: E402
 
+from benchmarks.results_file import Column, Table, add_results_argument, start, write_result  # noqa: E402
 from pipeline.run.runner import prepare  # noqa: E402
 
 
-def main() -> int:
+def main(argv: list[str] | None = None) -> int:
+    context = start("benchmarks/bench_study003.py", argv)
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--runs", type=int, default=100)
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--repeat", type=int, default=3)
     parser.add_argument("--experiment", default="sonar_case2")
     parser.add_argument("--json", type=Path, default=ROOT / "artifacts" / "benchmarks" / "study003.json")
-    args = parser.parse_args()
+    add_results_argument(parser)
+    args = parser.parse_args(argv)
     with initialize_config_dir(version_base="1.3", config_dir=str(ROOT / "conf")):
         cfg = compose("config", overrides=[f"experiment={args.experiment}", f"mc.runs={args.runs}",
                                            "paths.artifacts=/nonexistent-artifacts"])
@@ -66,6 +69,17 @@ def main() -> int:
               f"{row['agreement']:.1e} |")
     args.json.parent.mkdir(parents=True, exist_ok=True)
     args.json.write_text(json.dumps({"runs": args.runs, "experiment": args.experiment, "rows": rows}, indent=2))
+    columns = [Column("variant", "tracker"), Column("numba_s", "compiled", "seconds", ".3f"),
+               Column("numpy_s", "numpy scans", "seconds", ".3f"), Column("ratio", "numpy / compiled", "ratio", ".1f"),
+               Column("agreement", "max difference / state RMS", "number", ".1e")]
+    write_result(f"study003_{args.experiment}", f"Study 003 {args.experiment}: the sonar trackers (filtering only)",
+                 [Table(columns, rows)],
+                 [f"Best of {args.repeat}, the engines alternating; the filter's own clock (compute_seconds), its "
+                  "(R, K, 6, 6) output arrays included.",
+                  "Agreement: max |compiled - numpy| over each state's RMS."],
+                 context=context, parameters={"experiment": args.experiment, "runs": args.runs,
+                                              "scans": reports.time.size, "seed": args.seed},
+                 directory=args.results_dir)
     return 0
 
 

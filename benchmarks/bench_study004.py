@@ -32,6 +32,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from benchmarks.results_file import Column, Table, add_results_argument, start, write_result  # noqa: E402
+
 EXPERIMENTS = {"2": "sonobuoy_case2", "1b": "sonobuoy_case1b"}
 
 
@@ -75,7 +77,7 @@ def filtering(args) -> int:
         started = time.perf_counter()
         make_filter(cfg, variants[0], "numba").run(reports.select([0]))
         print(f"numba kernel ready (cache load or compilation) in {time.perf_counter() - started:.2f} s")
-    medians = {}
+    medians, rows = {}, []
     for key in variants:
         seconds = {engine: [] for engine in engines}
         result = {}
@@ -85,16 +87,45 @@ def filtering(args) -> int:
                 started = time.perf_counter()
                 result[engine] = estimator.run(reports)
                 seconds[engine].append(time.perf_counter() - started)
+        row = {"variant": key}
         for engine in engines:
             medians[key, engine] = statistics.median(seconds[engine])
             rmse, loss = final_rmse(result[engine], truth)
+            row.update({engine: medians[key, engine], f"{engine}_rmse": rmse, f"{engine}_loss": 100 * loss})
             print(f"{key:7s} {engine:6s} filtering only: median {medians[key, engine]:7.2f} s of {args.repeats} "
                   f"({', '.join(f'{s:.2f}' for s in seconds[engine])})  final RMSE {rmse:.0f} m, loss {loss:.0%}")
         if len(engines) == 2:
             print(f"{key:7s} {engines[1]} / {engines[0]}: {medians[key, engines[1]] / medians[key, engines[0]]:.1f}x")
+        if {"numba", "numpy"} <= set(engines):
+            row["ratio"] = row["numpy"] / row["numba"]
+        rows.append(row)
+    record(args, "", rows, [f"Filtering only: median of {args.repeats}, the engines alternating (a shared machine's "
+                            "load hits both alike); the kernel loaded before the clock.",
+                            "Final RMSE: position error at the last scan; loss: share of runs ending over 2 km off."],
+           {"particles": int(cfg.target_model.particles), "scans": reports.z.shape[1] - 1})
     if args.single_runs:
         return single_runs(args, cfg, reports, variants[0], engines[0])
     return 0
+
+
+def record(args, suffix: str, rows: list[dict], notes: list[str], size: dict) -> None:
+    """The results file of this case (``suffix``: ``""`` filtering only, ``"_processes"`` whole processes);
+    not written with one engine, which has no ratio partner."""
+    if "ratio" not in rows[0]:
+        print("results not recorded: the ratio needs both engines (--engines numba,numpy)")
+        return
+    columns = [Column("variant", "variant"), Column("numba", "compiled", "seconds", ".2f"),
+               Column("numpy", "numpy loop", "seconds", ".2f"), Column("ratio", "numpy / compiled", "ratio", ".1f")]
+    if "numba_rmse" in rows[0]:
+        columns += [Column("numba_rmse", "final RMSE, compiled [m]", "number", ".0f"),
+                    Column("numpy_rmse", "numpy [m]", "number", ".0f"),
+                    Column("numba_loss", "loss, compiled [% of runs]", "number", ".0f"),
+                    Column("numpy_loss", "numpy [% of runs]", "number", ".0f")]
+    what = "whole processes, timed from outside" if suffix else "filtering only"
+    write_result(f"study004_case{args.case}{suffix}", f"Study 004 case {args.case.upper()}: the particle filters, "
+                 f"compiled scan against the numpy loop ({what})", [Table(columns, rows)], notes, context=args.context,
+                 parameters={"experiment": EXPERIMENTS[args.case], "runs": args.runs, **size, "seed": args.seed},
+                 directory=args.results_dir)
 
 
 def single_runs(args, cfg, reports, key: str, engine: str) -> int:
@@ -131,13 +162,21 @@ def processes(args) -> int:
             started = time.perf_counter()
             subprocess.run(base + ["--engines", engine], check=True, env=env)
             seconds[engine].append(time.perf_counter() - started)
+    row = {"variant": args.variants.split(",")[0]}
     for engine in engines:
+        row[engine] = statistics.median(seconds[engine])
         print(f"{args.variants.split(',')[0]} {engine:6s} whole process: median {statistics.median(seconds[engine]):7.2f} s "
               f"of {args.processes} ({', '.join(f'{s:.2f}' for s in seconds[engine])})")
+    if {"numba", "numpy"} <= set(engines):
+        row["ratio"] = row["numpy"] / row["numba"]
+    record(args, "_processes", [row], [f"Whole processes: median of {args.processes}, the engines alternating; Python's "
+                                       "start, imports, the configuration, the simulation, numba's cache load and the "
+                                       "filtering."], {})
     return 0
 
 
-def main() -> int:
+def main(argv: list[str] | None = None) -> int:
+    context = start("benchmarks/bench_study004.py", argv)
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--case", choices=sorted(EXPERIMENTS), default="2")
     parser.add_argument("--runs", type=int, default=100)
@@ -149,7 +188,9 @@ def main() -> int:
     parser.add_argument("--jit", action="store_true", help="with --processes: first a process on an empty numba cache")
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--quiet", action="store_true", help=argparse.SUPPRESS)     # a whole-process child
-    args = parser.parse_args()
+    add_results_argument(parser)
+    args = parser.parse_args(argv)
+    args.context = context
     if args.runs < 1 or args.repeats < 1 or args.single_runs < 0 or args.processes < 0:
         parser.error("--runs and --repeats must be >= 1, --single-runs and --processes >= 0")
     if args.quiet:                                   # the child of --processes: filter once, print nothing
