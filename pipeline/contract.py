@@ -5,6 +5,8 @@ runner (pipeline.run.runner) calls exactly these hooks, in this order:
 
 1. ``check(scenario, sensor, estimators)``: cross-node consistency, before any stage; raise
    ``pipeline.errors.ConfigError`` naming the key.
+   The scenario and measure stages' tables come from ``truth_to_frame`` / ``detections_to_frame`` (and back
+   from ``truth_from_frame`` / ``detections_from_frame``); the defaults are pipeline.storage.schemas'.
 2. ``track_input(truth, detections, sensor, seed)``: the filters' view of the detections (a
    ``filters.base.MeasurementSeries``, or the study's own report type). Randomness here (a drawn
    track start) comes from ``pipeline.run.seeding.run_generators(seed, <stage>, R)``.
@@ -108,6 +110,28 @@ class Study(ABC):
     @abstractmethod
     def estimate_to_frame(self, estimate: Any, truth: "Truth") -> tuple["pl.DataFrame", dict[str, str]]:
         """The track stage's table (one row per run x step x object) and its metadata."""
+
+    def truth_to_frame(self, truth: "Truth") -> tuple["pl.DataFrame", dict[str, str]]:
+        """The scenario stage's table (default: pipeline.storage.schemas' full run x step x target grid). A study
+        whose targets come and go stores only the rows of the targets that exist."""
+        from pipeline.storage.schemas import truth_to_frame
+        return truth_to_frame(truth)
+
+    def truth_from_frame(self, df: "pl.DataFrame", metadata: Mapping[str, str]) -> "Truth":
+        """The truth back from its table (default: pipeline.storage.schemas')."""
+        from pipeline.storage.schemas import truth_from_frame
+        return truth_from_frame(df, metadata)
+
+    def detections_to_frame(self, detections: "Detections") -> tuple["pl.DataFrame", dict[str, str]]:
+        """The measure stage's table (default: pipeline.storage.schemas' full run x step x slot grid). A study with
+        a variable number of detections per scan stores only the filled slots."""
+        from pipeline.storage.schemas import detections_to_frame
+        return detections_to_frame(detections)
+
+    def detections_from_frame(self, df: "pl.DataFrame", metadata: Mapping[str, str]) -> "Detections":
+        """The detections back from their table (default: pipeline.storage.schemas')."""
+        from pipeline.storage.schemas import detections_from_frame
+        return detections_from_frame(df, metadata)
 
     def estimate_from_frame(self, df: "pl.DataFrame", metadata: Mapping[str, str]) -> Any:
         """The estimate back from its table (default: pipeline.storage.schemas' TrackEstimate codec)."""

@@ -34,7 +34,6 @@ class RecomputeError(Exception):
 
 def recompute(run_dir: Path) -> tuple[pl.DataFrame, pl.DataFrame]:
     """(metrics, summary) of the stored run, recomputed from its files."""
-    from pipeline.storage import schemas
     from pipeline.storage.estimates import StoredEstimates
     from pipeline.run.runner import evaluate_stage, prepare
     from pipeline.run.stored import stored_config
@@ -51,7 +50,7 @@ def recompute(run_dir: Path) -> tuple[pl.DataFrame, pl.DataFrame]:
         raise RecomputeError(f"{run_dir}: the run's status is {status.get('status')!r}, not 'ok'; nothing to recompute")
     cfg = stored_config(run_dir)
     prepared = prepare(cfg)
-    truth = schemas.truth_from_frame(*read_table(run_dir / "truth.parquet"))
+    truth = prepared.study.truth_from_frame(*read_table(run_dir / "truth.parquet"))
     runs, steps = truth.runs, truth.time.size
     tables = {v: run_dir / "estimates" / f"{v}.parquet" for v in prepared.variants}
     display, faults = {}, {}

@@ -286,7 +286,8 @@ PROJECT_PACKAGES = ("pipeline", "filters")
 # and trackers stay out: list `stonesoup` in plugins.packages to allow every class of it.
 COMPONENT_PACKAGES = ("stonesoup.models", "stonesoup.predictor", "stonesoup.updater", "stonesoup.initiator",
                       "stonesoup.resampler", "stonesoup.regulariser", "stonesoup.simulator", "stonesoup.types",
-                      "stonesoup.measures")
+                      "stonesoup.measures", "stonesoup.hypothesiser", "stonesoup.dataassociator", "stonesoup.deleter",
+                      "stonesoup.mixturereducer")
 # the optional extra whose install provides a package a _target_ may name (for the message when it is missing)
 EXTRA_OF_PACKAGE = {"stonesoup": "stonesoup"}
 DOTTED_NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_]*(\.[A-Za-z_][A-Za-z0-9_]*)+")

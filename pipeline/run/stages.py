@@ -16,7 +16,6 @@ from typing import Any, Callable, Iterator, Mapping
 
 import polars as pl
 
-from pipeline.storage import schemas
 from pipeline.studies.single_target import filter_chunks, truth_runs, with_fault_flags
 
 Codec = Callable[[Any, Mapping[str, Any]], tuple[pl.DataFrame, dict]]     # (value, the inputs) -> table
@@ -67,15 +66,18 @@ def declare(cfg: Any, resolved: Mapping[str, Any], prepared: Any, fault_checks: 
             made[:] = [(detections, study.track_input(truth, detections, sensor, seed))]
         return made[0][1]
 
+    # the study's codecs of the truth and detections tables (pipeline.contract.Study; default schemas') are in
+    # those stages' keys through the study's module
+    codecs = ("pipeline.run.stages", "pipeline.storage.schemas", "pipeline.run.seeding", type(study).__module__)
     stages = [
         # a scenario read from a data file (a recorded flight) names its bytes: an edited file recomputes
         Stage("scenario", "truth", "truth", (), {"scenario": resolved["scenario"], "runs": runs, "seed": seed,
                                                   **_data_fingerprint(scenario)},
-              ("pipeline.run.stages", "pipeline.storage.schemas", "pipeline.run.seeding"), lambda: scenario.generate(runs, seed),
-              lambda truth, _: schemas.truth_to_frame(truth), schemas.truth_from_frame, lambda _: f"{runs} runs"),
+              codecs, lambda: scenario.generate(runs, seed),
+              lambda truth, _: study.truth_to_frame(truth), study.truth_from_frame, lambda _: f"{runs} runs"),
         Stage("measure", "detections", "detections", ("truth",), {"sensors": resolved["sensors"], "seed": seed},
-              ("pipeline.run.stages", "pipeline.storage.schemas", "pipeline.run.seeding"), lambda truth: sensor.measure(truth, seed),
-              lambda detections, _: schemas.detections_to_frame(detections), schemas.detections_from_frame,
+              codecs, lambda truth: sensor.measure(truth, seed),
+              lambda detections, _: study.detections_to_frame(detections), study.detections_from_frame,
               lambda i: f"{runs} runs x {i['truth'].time.size} scans"),
     ]
     streamed = bool(chunk_runs) and chunk_runs < runs
