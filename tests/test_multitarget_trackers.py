@@ -267,3 +267,12 @@ def test_gmphd_agrees_with_stone_soup_on_two_targets():
         a, b = ours[k][np.isfinite(ours[k, :, 0])], theirs[k][np.isfinite(theirs[k, :, 0])]
         assert len(a) == len(b)
         np.testing.assert_allclose(np.sort(a, axis=0), np.sort(b, axis=0), atol=0.05)    # 7 mm seen
+
+
+def test_detections_without_planar_positions_are_refused_by_name():
+    _, detections = scene([(0.0, 1.0, 0.0, 1.0)], runs=1, scans=3)
+    odd = DetectionSets(detections.time, detections.z, detections.count, detections.noise_covariance,
+                        ("north", "east"), (0, 1))
+    for tracker in (GNN(), GMPHD()):
+        with pytest.raises(ValueError, match=r"lack \['x', 'y'\]"):
+            tracker.run(odd)

@@ -102,6 +102,10 @@ class GMPHD(MultiTargetTracker):
         if not isinstance(detections, DetectionSets):
             raise TypeError(f"{self.name}: takes {sorted(self.accepts)} (a DetectionSets), "
                             f"not {type(detections).__name__}")
+        missing = [name for name in ("x", "y") if name not in tuple(detections.state_names)]
+        if missing:
+            raise ValueError(f"{self.name}: detections.state_names {tuple(detections.state_names)} lack {missing}; "
+                             f"these trackers estimate (x, vx, y, vy) from (x, y) position detections")
         kernel.warm_up()                                  # numba's start before the clock
         started = clock.perf_counter()
         times = np.asarray(detections.time, dtype=float)

@@ -22,6 +22,12 @@ hits; it is deleted as soon as that can no longer happen (after ``confirm_window
 latest). A confirmed track is deleted after ``delete_misses`` consecutive scans without a hit.
 Track ids count from 0 per run in order of initiation; a deleted track's id is never reused.
 
+The defaults (4 of 5, delete after 3, initial velocity std 30 m/s) suit light clutter (about 10
+points a scan on the Vo-Vo region [-1000, 1000]^2): at 50 a scan single-point starts collect clutter
+in their first wide gates and 4 of 5 confirms many of them (5 runs of benchmarks/multitarget.py,
+2026-12-04: GNN mean GOSPA 173 with 4 of 5, 86 with 6 of 8; JPDA 299 and 158); use a longer M of N
+(or a smaller ``initial_velocity_std``) in dense clutter.
+
 Output (TrackSets): state/covariance in DetectionSets.state_names (components the motion lacks
 are NaN); ``existence`` NaN (these trackers carry no existence probability); extras:
 ``tracks_tentative`` (R, K) tentative tracks alive after the scan; JPDA adds ``events`` (joint
@@ -84,7 +90,7 @@ class _AssociationTracker(MultiTargetTracker):
     def __init__(self, name: str, motion: object, detection_probability: float = 0.98,
                  gate_probability: float = 0.999, clutter_density: float = 12.5e-6, confirm_hits: int = 4,
                  confirm_window: int = 5, delete_misses: int = 3, report_tentative: bool = False,
-                 max_events: float = 10000.0, k_best: int = 100) -> None:
+                 max_events: float = 100000.0, k_best: int = 50) -> None:
         self.name = name
         self.motion = motion
         self.detection_probability = _probability(detection_probability, "detection_probability")
@@ -108,6 +114,10 @@ class _AssociationTracker(MultiTargetTracker):
                             f"not {type(detections).__name__}")
         if detections.z.shape[-1] != 2:
             raise ValueError(f"{self.name}: detections must be 2-D positions (m = 2), not m = {detections.z.shape[-1]}")
+        missing = [name for name in ("x", "y") if name not in tuple(detections.state_names)]
+        if missing:
+            raise ValueError(f"{self.name}: detections.state_names {tuple(detections.state_names)} lack {missing}; "
+                             f"these trackers estimate (x, vx, y, vy) from (x, y) position detections")
         if self.association == "jpda":
             from filters.multitarget import kernel
             kernel.warm_up()                      # numba's start before the clock
