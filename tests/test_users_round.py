@@ -66,3 +66,59 @@ def test_a_typo_in_a_key_or_an_option_names_the_close_ones(tmp_path, args, says)
     assert "Traceback" not in proc.stderr and "object_type" not in proc.stderr
     assert len(proc.stderr.strip().splitlines()) == 1              # one paragraph
     assert not (tmp_path / "runs").exists()
+
+
+# ---- (a) the compute column: several passes in this process, cached times marked ------------------------
+
+def test_timing_takes_turns_stops_at_the_passes_and_the_budget_and_marks_a_cached_time():
+    """The invariants of pipeline.evaluation.timing.time_passes (not timing values: a fake clock)."""
+    from pipeline.evaluation.timing import time_passes
+    now, calls = [0.0], []
+
+    def pass_of(name: str, seconds: float):
+        def run() -> float:
+            calls.append(name)
+            now[0] += seconds
+            return seconds
+        return run
+
+    timings = time_passes({"a": pass_of("a", 1.0), "b": pass_of("b", 0.5), "slow": pass_of("slow", 9.0),
+                           "cached": pass_of("cached", 1.0)},
+                          first={"a": 1.0, "b": None, "slow": None, "cached": None},
+                          stored={"a": 1.0, "b": 0.5, "slow": 9.0, "cached": 1.0},
+                          passes=4, budget_s=3.0, clock=lambda: now[0])
+    assert timings["a"].passes == (1.0, 1.0, 1.0) and not timings["a"].cached        # 3 s budget: 3 passes
+    assert timings["b"].count == 4 and not timings["b"].cached                         # at most `passes`
+    assert timings["slow"].cached and timings["slow"].passes == (9.0,) and "slow" not in calls   # over budget
+    assert not timings["cached"].cached                                                # re-timed here
+    assert calls[:3] == ["a", "b", "cached"]                                           # the variants take turns
+
+
+def test_a_ratio_with_a_cached_time_is_flagged_and_its_interval_holds_its_value():
+    from pipeline.evaluation.timing import Timing, ratio_fields
+    here, ref = Timing((1.0, 1.2, 0.9)), Timing((2.0, 2.5, 1.8))
+    fields = ratio_fields(here, ref, False)
+    assert fields["ci_low"] <= fields["value"] <= fields["ci_high"] and not fields["mixes_processes"]
+    assert ratio_fields(here, Timing((2.0,), cached=True), False)["mixes_processes"]
+    assert ratio_fields(ref, ref, True)["value"] == 100.0
+
+
+def test_a_job_times_every_variant_several_times_in_its_process_and_marks_cached_times(tmp_path):
+    """Before: compute_seconds was one pass, a cached variant's from whichever process computed it, and the
+    summary said neither (no compute_passes / compute_cached / mixes_processes columns)."""
+    import polars as pl
+    from tests.test_pipeline import run_in_process
+    first, _ = run_in_process(tmp_path, "first", "mc.runs=2", "scenario.steps=30", "timing.passes=3",
+                              "timing.budget_s=30")
+    timed = first.summary.filter(pl.col("series") == "compute_seconds")
+    assert timed["compute_passes"].to_list() == [3, 3, 3] and not any(timed["compute_cached"])
+    assert (timed["ci_low"] <= timed["value"]).all() and (timed["value"] <= timed["ci_high"]).all()
+    ratios = first.summary.filter(pl.col("series") == "compute_pct_of_reference")
+    assert ratios.height == 3 and not any(ratios["mixes_processes"])
+    # all cached, none re-timed (budget 0): each keeps its stored pass, marked; every ratio is flagged
+    again, _ = run_in_process(tmp_path, "again", "mc.runs=2", "scenario.steps=30", "timing.budget_s=0")
+    cached = again.summary.filter(pl.col("series") == "compute_seconds")
+    assert all(cached["compute_cached"]) and cached["ci_low"].null_count() == cached.height
+    flagged = again.summary.filter((pl.col("series") == "compute_pct_of_reference") & (pl.col("variant_key") != "fsimm"))
+    assert all(flagged["mixes_processes"])
+    assert "(cached)" in again.table and "(mixed)" in again.table and "cost: `models %`" in again.table

@@ -16,6 +16,7 @@ import polars as pl
 from filters.base import TrackEstimate
 from pipeline.data import Truth
 from pipeline.evaluation.metrics import is_count, nees, unit_of
+from pipeline.evaluation.timing import Timing, compute_row_fields, ratio_fields
 from pipeline.evaluation.uncertainty import (CONFIDENCE, RESAMPLES, Estimated, Interval, RunValues, WindowStatistic,
                                   comparisons_schema, counts_as_flags, summarize)
 
@@ -219,6 +220,8 @@ SUMMARY_SCHEMA = {"variant": pl.String, "variant_key": pl.String, "series": pl.S
                   "value": pl.Float64, "unit": pl.String, "n_runs": pl.Int32}
 INTERVAL_SCHEMA = {"n_valid_runs": pl.Int32, "standard_error": pl.Float64, "ci_low": pl.Float64,
                    "ci_high": pl.Float64, "interval": pl.String}
+# the compute rows' timing (pipeline.evaluation.timing): passes timed, a cached time, a ratio of two processes
+TIMING_SCHEMA = {"compute_passes": pl.Int32, "compute_cached": pl.Boolean, "mixes_processes": pl.Boolean}
 
 
 def summary_row(key: str, display: str, series: str, window: str | None, value: float | None, runs: int,
@@ -266,7 +269,7 @@ def _row(key: str, display: str, metric: str, window: str | None, values, runs: 
     return summary_row(key, display, metric, window, value, runs)
 
 
-def variant_rows(key: str, display: str, metrics: Mapping[str, RunValues | np.ndarray], compute_seconds: float,
+def variant_rows(key: str, display: str, metrics: Mapping[str, RunValues | np.ndarray], compute_seconds: float | Timing,
                  windows: Sequence[Window], runs: int, reached: tuple[str, int, int] | None = None,
                  count_windows: Sequence[Window] = (), reached_fraction: np.ndarray | None = None) -> list[dict]:
     """One variant's rows of ``summary_rows``: its metrics over the windows (counts also over the
@@ -274,7 +277,7 @@ def variant_rows(key: str, display: str, metrics: Mapping[str, RunValues | np.nd
     rows = [_row(key, display, metric, w.name, values, runs, w) for w in windows for metric, values in metrics.items()]
     rows += [_row(key, display, metric, w.name, values, runs, w) for w in count_windows
              for metric, values in metrics.items() if is_count(metric)]
-    rows.append(_row(key, display, "compute_seconds", None, compute_seconds, runs))
+    rows.append(compute_row(key, display, compute_seconds, runs))
     if reached is not None and reached_fraction is not None:
         name, _, by_step = reached
         rows.append(_row(key, display, "group_reached_fraction", f"{name} by step {by_step}",
@@ -282,24 +285,35 @@ def variant_rows(key: str, display: str, metrics: Mapping[str, RunValues | np.nd
     return rows
 
 
+def compute_row(key: str, display: str, compute_seconds: float | Timing, runs: int) -> dict:
+    """A variant's ``compute_seconds`` row: a float is one pass; a ``Timing`` gives the median of its
+    passes with their range, how many, and whether it is a cached time (pipeline.evaluation.timing)."""
+    timing = compute_seconds if isinstance(compute_seconds, Timing) else Timing((float(compute_seconds),))
+    return _row(key, display, "compute_seconds", None, timing.median(), runs) | compute_row_fields(timing)
+
+
 def models_per_step(metrics: Mapping[str, RunValues | np.ndarray], windows: Sequence[Window]) -> dict[str, float | None]:
     """window name -> a variant's mean models evaluated per step (None without that metric)."""
     return {w.name: _models_per_step(metrics, w) for w in windows}
 
 
-def reference_rows(display: Mapping[str, str], compute_seconds: Mapping[str, float],
+def reference_rows(display: Mapping[str, str], compute_seconds: Mapping[str, float | Timing],
                    models: Mapping[str, Mapping[str, float | None]], windows: Sequence[Window],
                    reference_key: str | None, runs: int, compute_reference: str | None = SAME_AS_REFERENCE
                    ) -> list[dict]:
-    """The rows of ``summary_rows`` across variants: compute time as % of ``compute_reference``'s, and
+    """The rows of ``summary_rows`` across variants: compute time as % of ``compute_reference``'s (the
+    ratio of the medians of the passes, its interval from their ranges, flagged where one of the two
+    times is cached and the other not: pipeline.evaluation.timing), and
     models per step (``models``: each variant's ``models_per_step``) as % of the reference variant's."""
     if compute_reference == SAME_AS_REFERENCE:
         compute_reference = reference_key
     rows: list[dict] = []
     if compute_reference is not None and compute_reference in display:
-        ref_time = compute_seconds[compute_reference]
+        timings = {key: t if isinstance(t, Timing) else Timing((float(t),)) for key, t in compute_seconds.items()}
+        ref_time = timings[compute_reference]
         for key, name in display.items():
-            rows.append(_row(key, name, "compute_pct_of_reference", None, 100.0 * compute_seconds[key] / ref_time, runs)
+            fields = ratio_fields(timings[key], ref_time, key == compute_reference)
+            rows.append(_row(key, name, "compute_pct_of_reference", None, fields["value"], runs) | fields
                         | {"unit": f"% of {display[compute_reference]}"})
     if reference_key is not None and reference_key in display:
         ref_models = models[reference_key]
@@ -359,7 +373,7 @@ def summary_table(rows: Sequence[dict], reference_key: str | None, seed: int, co
             record |= {"n_valid_runs": None, "standard_error": 0.0, "ci_low": r["value"], "ci_high": r["value"],
                        "interval": "constant"}
         records.append(record)
-    summary = pl.DataFrame(records, schema=SUMMARY_SCHEMA | INTERVAL_SCHEMA)
+    summary = pl.DataFrame(records, schema=SUMMARY_SCHEMA | INTERVAL_SCHEMA | TIMING_SCHEMA)
     summary = summary.with_columns(pl.col(c).fill_nan(None) for c in ("value", "standard_error", "ci_low", "ci_high"))
     compared = pl.DataFrame(comparisons, schema=comparisons_schema()).with_columns(
         pl.col(pl.Float64).fill_nan(None))

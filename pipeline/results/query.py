@@ -98,6 +98,8 @@ SUMMARY_COLUMNS: dict[str, pl.DataType] = {
     "standard_error": pl.Float64(), "ci_low": pl.Float64(), "ci_high": pl.Float64(), "interval": pl.String(),
     "config_hash": pl.String(), "overrides": pl.String(), "sweep": pl.String(), "job_num": pl.Int32(),
     "estimates_from_cache": pl.Boolean(),
+    # the compute rows' timing (pipeline.evaluation.timing)
+    "compute_passes": pl.Int32(), "compute_cached": pl.Boolean(), "mixes_processes": pl.Boolean(),
 }
 METRICS_COLUMNS: dict[str, pl.DataType] = {
     "run_id": pl.String(), "experiment": pl.String(), "variant": pl.String(),

@@ -99,6 +99,14 @@ def validate(cfg: DictConfig) -> None:
     if chunk is not None and (not _is_int(chunk) or chunk < 1):
         raise ConfigError(f"mc.chunk_runs: {chunk!r} is not allowed; it must be an integer >= 1 (runs filtered "
                           f"together) or null (all runs at once). Results do not depend on it.")
+    timing = cfg.get("timing") or {}
+    passes, budget = timing.get("passes", 1), timing.get("budget_s", 0.0)
+    if not _is_int(passes) or passes < 1:
+        raise ConfigError(f"timing.passes: {passes!r} is not allowed; it must be an integer >= 1 (the most filtering "
+                          f"passes timed per variant for its compute time; the track stage's own pass counts).")
+    if isinstance(budget, bool) or not isinstance(budget, (int, float)) or not budget >= 0:
+        raise ConfigError(f"timing.budget_s: {budget!r} is not allowed; it must be a number of seconds >= 0 (the time "
+                          f"a variant's timed passes may take; 0: no pass beyond the track stage's own).")
     if not cfg.get("filters"):
         raise ConfigError(f"filters: experiment '{cfg.experiment_name}' defines no filter variants; add at least "
                           f"one node with a _target_ under filters (e.g. +filter@filters.fsimm=fsimm).")

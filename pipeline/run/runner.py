@@ -33,8 +33,9 @@ from pipeline.run import provenance as provenance_of_run
 from pipeline.run.environment import environment, table_metadata as environment_metadata
 from pipeline.errors import ConfigError, StorageError
 from pipeline.storage.estimates import StoredEstimates, recorded_runs
-from pipeline.evaluation.evaluate import (Window, group_reached, metrics_frame, models_per_step, reference_rows, summary_row,
-                               summary_table, variant_rows)
+from pipeline.evaluation.evaluate import (Window, compute_row, group_reached, metrics_frame, models_per_step, reference_rows,
+                               summary_row, summary_table, variant_rows)
+from pipeline.evaluation.timing import BUDGET_S, PASSES, Timing, time_passes
 from pipeline.evaluation.evaluate import resolved as per_step_values
 from pipeline.evaluation.uncertainty import CONFIDENCE, RESAMPLES, resample
 from pipeline.evaluation.faults import FaultChecks, fault_summary
@@ -45,7 +46,7 @@ from pipeline.run.process import identity as process_identity
 from pipeline.run.progress import Reporter, choose_mode
 from pipeline.views.tables import ReportContext, format_summary
 from pipeline.run.stages import declare as declare_stages
-from pipeline.studies.single_target import SingleTargetStudy, flags_from_table
+from pipeline.studies.single_target import SingleTargetStudy, filter_chunks, flags_from_table
 from pipeline.storage.run_tables import STAGE_KEYS
 from pipeline.storage.store import (StageCache, atomic_write_parquet, atomic_write_text, inside, package_version, publish,
                             read_table, stable_hash)
@@ -432,6 +433,7 @@ def run_experiment(cfg: DictConfig, ctx: RunContext) -> RunOutcome:
     record_runs = ([cfg.record.runs] if isinstance(cfg.record.runs, int) else list(cfg.record.runs)) \
         if cfg.record.enabled else []
     evaluation: Evaluation | None = None
+    stored_seconds: dict[str, float] = {}  # each variant's track stage time (a cached one's: another process's)
     declared, track_input = declare_stages(cfg, resolved, prepared, build_fault_checks(cfg))
     read_later = {name for stage in declared for name in stage.inputs}
     chunk_runs = cfg.mc.get("chunk_runs")
@@ -458,6 +460,7 @@ def run_experiment(cfg: DictConfig, ctx: RunContext) -> RunOutcome:
             estimate = outputs[stage.output] if stage.output in read_later else outputs.pop(stage.output)
             truth = outputs["truth"]
             faults[v] = _track_done(v, display[v], estimate, table, cached[stage.output], runs, truth.time.size)
+            stored_seconds[v] = float(estimate.compute_seconds)
             if evaluation is None:
                 evaluation = Evaluation(cfg, study, sensor, truth, runs)
             with progress.task(f"[evaluate] {display[v]}"):      # the bootstrap reports its metrics
@@ -472,6 +475,10 @@ def run_experiment(cfg: DictConfig, ctx: RunContext) -> RunOutcome:
     K = truth.time.size
     if evaluation is None:
         evaluation = Evaluation(cfg, study, sensor, truth, runs)
+    # compute time: every variant timed in this process, several passes taking turns (pipeline.evaluation.timing)
+    for v, timing in time_variants(cfg, estimators, variants, lambda: track_input(truth, detections), stored_seconds,
+                                   {v: not cached[f"estimates/{v}"] for v in variants}, display, progress).items():
+        evaluation.set_timing(v, timing)
     estimates = StoredEstimates(tables, study.estimate_from_frame)
     started = time.perf_counter()
     with progress.task(f"[evaluate] {len(variants)} variants x {K} steps"):   # the bootstrap reports its metrics
@@ -537,6 +544,39 @@ def _track_done(key: str, display: str, estimate: Any, table: pl.DataFrame, hit:
     return faults
 
 
+def time_variants(cfg: DictConfig, estimators: Mapping[str, Any], variants: list[str], view: Callable[[], Any],
+                  stored_seconds: Mapping[str, float], timed_here: Mapping[str, bool], display: Mapping[str, str],
+                  progress: Reporter) -> dict[str, Timing]:
+    """Each variant's ``Timing`` in this process: its track stage's pass where it ran here (``timed_here``)
+    and further filtering passes on the same input (``view()``, the filters' view of the detections),
+    up to ``timing.passes`` per variant within ``timing.budget_s`` seconds each (pipeline.evaluation.timing).
+    A pass's estimate is dropped as soon as it is timed; with ``mc.chunk_runs`` a pass goes chunk by
+    chunk, as the track stage did."""
+    node = cfg.get("timing") or {}
+    passes, budget = int(node.get("passes", PASSES)), float(node.get("budget_s", BUDGET_S))
+    chunk_runs = cfg.mc.get("chunk_runs")
+    runs = int(cfg.mc.runs)
+
+    def one_pass(v: str) -> float:
+        with progress.task(f"[timing] {display[v]}"):
+            if chunk_runs and chunk_runs < runs:
+                seconds = float("nan")
+                for _, part in filter_chunks(estimators[v], view(), chunk_runs):
+                    seconds = float(part.compute_seconds)      # the running total of the chunks'
+                    del part
+                return seconds
+            return float(estimators[v].run(view()).compute_seconds)
+
+    timings = time_passes({v: (lambda v=v: one_pass(v)) for v in variants},
+                          {v: stored_seconds[v] if timed_here[v] else None for v in variants}, stored_seconds,
+                          passes, budget)
+    for v, t in timings.items():
+        low, high = t.interval()
+        log.info("[timing] %s: %.4g s, %s%s", display[v], t.median(), t.method(),
+                 f" [{low:.4g}, {high:.4g}] s" if low is not None else "")
+    return timings
+
+
 def job_header(text: str, ctx: RunContext) -> str:
     """A sweep job's printed summary headed by its job number and overrides (``[job 3] ao_vsimm_s1: 5
     Monte Carlo runs; overrides: ...``): the jobs' tables reach one terminal, each must say whose it
@@ -587,7 +627,7 @@ class Evaluation:
         self.rows: dict[str, list[dict]] = {}            # its summary rows (pipeline.evaluation.evaluate.variant_rows)
         self.study_rows: dict[str, list[dict]] = {}      # its Study.variant_summary rows
         self.models: dict[str, dict[str, float | None]] = {}
-        self.compute_seconds: dict[str, float] = {}
+        self.compute_seconds: dict[str, float | Timing] = {}
         self._warnings: list[warnings.WarningMessage] = []
         self._reissued: set[tuple] = set()
         self.measuring_seconds = 0.0                     # spent in ``add``, between the track stages
@@ -625,6 +665,13 @@ class Evaluation:
             self.models[key] = models_per_step(metrics, self.windows)
             self.compute_seconds[key] = float(estimate.compute_seconds)
         self.measuring_seconds += time.perf_counter() - started
+
+    def set_timing(self, key: str, timing: Timing) -> None:
+        """A variant's compute time as this job timed it (pipeline.evaluation.timing): its compute row,
+        and the ratios ``finish`` makes, get the median of the passes and their range."""
+        self.compute_seconds[key] = timing
+        self.rows[key] = [compute_row(key, self.display[key], timing, self.runs) if row["series"] == "compute_seconds"
+                          else row for row in self.rows[key]]
 
     def finish(self, estimates: Mapping[str, Any], faults: dict[str, dict[str, int]]) -> Evaluated:
         """The tables, once every variant is in; ``estimates`` (variant key -> estimate, e.g. a

@@ -50,12 +50,46 @@ def format_summary(summary: pl.DataFrame, experiment: str, runs: int,
                 text = format_value(m, hit["value"][0])
                 if with_intervals and hit["ci_low"][0] is not None and hit["ci_high"][0] is not None:
                     text += f" ± {_like(text, (hit['ci_high'][0] - hit['ci_low'][0]) / 2)}"
+                text += _timing_mark(hit)
                 row.append(text)
             table.append(row)
         lines += _block(table, f"window: {window}" if window else "")
+    lines += timing_note(summary)
     if comparisons is not None and comparisons.height:
         lines += format_comparisons(comparisons, summary)
     return "\n".join(lines)
+
+
+def _timing_mark(hit: pl.DataFrame) -> str:
+    """`` (cached)`` after a compute value timed by another process, `` (mixed)`` after a ratio of two
+    processes' times (pipeline.evaluation.timing); nothing for the other values or an older summary."""
+    if "mixes_processes" in hit.columns and hit["mixes_processes"][0]:
+        return " (mixed)"
+    if "compute_cached" in hit.columns and hit["compute_cached"][0] and hit["series"][0] == "compute_seconds":
+        return " (cached)"
+    return ""
+
+
+def timing_note(summary: pl.DataFrame) -> list[str]:
+    """What the compute columns are (the median of the passes timed in this job, ± half their range)
+    and, where the study counts the models its filters evaluate, that this count is the cost to compare."""
+    if "compute_passes" not in summary.columns:
+        return []
+    rows = summary.filter(pl.col("series") == "compute_seconds")
+    if not rows.height:
+        return []
+    passes = sorted({int(n) for n in rows["compute_passes"].drop_nulls().to_list()})
+    count = f"{passes[0]}" if len(passes) == 1 else f"{passes[0]}-{passes[-1]}"
+    lines = ["", f"compute: the median of {count} filtering pass(es) timed in this job, ± half their range "
+                 f"(timing.passes, timing.budget_s; summary.parquet: compute_passes, ci_low, ci_high)"]
+    cached = rows.filter(pl.col("compute_cached").fill_null(False))["variant"].to_list()
+    if cached:
+        lines.append(f"(cached): {', '.join(cached)} kept the one pass of the process that computed the estimate; "
+                     f"a ratio with it mixes processes (mixed): not a comparison. Raise timing.budget_s to re-time it.")
+    if summary.filter(pl.col("series") == "models_pct_of_reference").height:
+        lines.append("cost: `models %` counts the models evaluated per step, exact and the same on every machine; "
+                     "compare costs by it, compute time is its noisy echo")
+    return lines
 
 
 def _with_reference(label: str, rows: pl.DataFrame, series: str) -> str:
