@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass, field, replace
+from abc import ABC, abstractmethod
 from typing import ClassVar, Mapping, Protocol, Sequence
 
 import numpy as np
@@ -163,6 +164,64 @@ class Estimator(Protocol):
     accepts: ClassVar[frozenset[str]]
 
     def run(self, measurements: MeasurementSeries) -> TrackEstimate: ...
+
+
+class SingleTargetFilter(ABC):
+    """The base of a filter of one target from one stream of scans (a ``MeasurementSeries``): subclass
+    it, set ``name`` and ``accepts``, write ``run``. A walk-through with a complete example in a package
+    of your own: docs/your-own-filter.md.
+
+    The layout contract of the ``TrackEstimate`` that ``run`` returns (R runs, K scans; the pipeline
+    checks it when the track stage ends and names the variant and the expected shape if it breaks):
+
+    - ``time``: (K,), the measurements' ``time``.
+    - ``state``: (R, K, n) with n = ``len(measurements.state_names)``, the components in that order
+      (the study's truth's: study 001 ``x, vx, y, vy``; study 000 ``x, y, z, vx, vy, vz, ax, ay, az``),
+      NaN for a component the filter does not estimate (a CV filter's accelerations) and at scans
+      before it has an estimate. ``empty_estimate`` gives both arrays all NaN in that layout.
+    - ``covariance``: (R, K, n, n), NaN in the rows and columns of the components it does not estimate.
+    - ``extras``: name -> (R, K, ...) arrays, columns of the estimates table; ``nis`` (R, K) the
+      normalised innovation squared nu' S^-1 nu with ``nis_dof`` (R, K) its degrees of freedom (the
+      measurement size; NaN nis and 0 dof at a scan without a measurement) give the NIS metrics.
+    - ``compute_seconds``: the wall time of the filtering itself (``time.perf_counter`` around it).
+
+    Work on all runs at once (arrays with the run axis first); a loop over scans is fine, a loop over
+    runs inside a scan is not (a compiled per-run loop is)."""
+
+    name: str = "my filter"
+    accepts: ClassVar[frozenset[str]] = SERIES_KINDS
+
+    @abstractmethod
+    def run(self, measurements: MeasurementSeries) -> TrackEstimate:
+        """Filter every run of ``measurements``; the estimate in the layout above."""
+
+    @staticmethod
+    def empty_estimate(measurements: MeasurementSeries, n: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """(state (R, K, n), covariance (R, K, n, n)), all NaN: n = ``len(measurements.state_names)``
+        (or ``n`` where the series names no layout); fill the components the filter estimates."""
+        names = measurements.state_names
+        size = len(names) if names is not None else n
+        if size is None:
+            raise ValueError("empty_estimate: the measurements name no state layout (state_names is None); pass n")
+        R, K = measurements.runs, measurements.scans
+        return np.full((R, K, size), np.nan), np.full((R, K, size, size), np.nan)
+
+
+def layout_problems(estimate: TrackEstimate, runs: int, scans: int, state_names: Sequence[str]) -> list[str]:
+    """What breaks ``SingleTargetFilter``'s layout contract in ``estimate`` for ``runs`` x ``scans`` and
+    the state ``state_names``: one sentence per array of the wrong shape ([] when it holds)."""
+    n = len(state_names)
+    expected = {"time": (scans,), "state": (runs, scans, n), "covariance": (runs, scans, n, n)}
+    problems = []
+    for name, shape in expected.items():
+        got = np.shape(getattr(estimate, name))
+        if tuple(got) != shape:
+            problems.append(f"its {name} has shape {tuple(got)}, expected {shape}")
+    for name, values in dict(estimate.extras).items():
+        got = np.shape(values)
+        if tuple(got[:2]) != (runs, scans):
+            problems.append(f"its extras[{name!r}] has shape {tuple(got)}, expected ({runs}, {scans}, ...)")
+    return problems
 
 
 def usable_processors() -> int:

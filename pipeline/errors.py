@@ -9,6 +9,11 @@ class ConfigError(PipelineError):
     """A config value that is not allowed. The message names the key, the value and what is allowed."""
 
 
+class EstimateLayoutError(PipelineError):
+    """A filter's estimate whose arrays do not have the study's layout (filters.base.SingleTargetFilter).
+    The message names the variant, its class, the shapes it has and the shapes expected."""
+
+
 class StorageError(PipelineError):
     """A file or folder the pipeline must write cannot be written (a path under a file, no permission,
     no space, a folder where a file belongs). The message names the path, the OS's reason and the fix."""

@@ -6,6 +6,9 @@ a stored run into the artifacts tree."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
+import numpy as np
 import pytest
 
 from tests.conftest import composed
@@ -122,3 +125,65 @@ def test_a_job_times_every_variant_several_times_in_its_process_and_marks_cached
     flagged = again.summary.filter((pl.col("series") == "compute_pct_of_reference") & (pl.col("variant_key") != "fsimm"))
     assert all(flagged["mixes_processes"])
     assert "(cached)" in again.table and "(mixed)" in again.table and "cost: `models %`" in again.table
+
+
+# ---- (c) your own filter: the documented example verbatim, and a wrong layout named -----------------------
+
+DOC = Path(__file__).resolve().parents[1] / "docs" / "your-own-filter.md"
+
+
+def test_the_documented_own_filter_example_runs_verbatim_in_a_fresh_folder(tmp_path):
+    """Before: no such page; the README pointed at docs/your-own-study.md, which had no example."""
+    import os
+    import re
+    import subprocess
+    import sys
+    text = DOC.read_text()
+    files = re.findall(r"<!-- file: (\S+) -->\n```\w*\n(.*?)```", text, re.S)
+    commands = re.findall(r"<!-- command -->\n```bash\n(.*?)```", text, re.S)
+    assert {path for path, _ in files} >= {"mytrack/cv.py", "mytrack/conf/filter/differenced.yaml"}
+    assert len(commands) == 2 and "hydra.searchpath" in commands[0] and "_target_" in commands[1]
+    for path, body in files:
+        (tmp_path / path).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / path).write_text(body)
+    env = {**os.environ, "HYDRA_FULL_ERROR": "0", "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
+    for i, command in enumerate(commands):
+        assert command.startswith("python -m pipeline ")
+        line = command.strip().replace("python -m", f"{sys.executable} -m", 1) + f" paths.artifacts=art{i}"
+        proc = subprocess.run(["bash", "-c", line], cwd=tmp_path, capture_output=True, text=True, timeout=300, env=env)
+        assert proc.returncode == 0, proc.stderr[-2000:]
+        assert "Differenced" in proc.stdout and "FSIMM" in proc.stdout
+        (written,) = (tmp_path / f"art{i}" / "runs" / "ao_vsimm_s1").glob("*/estimates/mine.parquet")
+
+
+class TwoComponents:
+    """A filter that breaks the layout contract: it writes (x, y) only, not the truth's four components."""
+    name = "Two"
+
+    def run(self, measurements):
+        from filters.base import TrackEstimate
+        R, K = measurements.runs, measurements.scans
+        return TrackEstimate(measurements.time, np.nan_to_num(measurements.z), np.tile(np.eye(2), (R, K, 1, 1)), {}, 0.0)
+
+
+def test_an_estimate_of_the_wrong_layout_is_refused_naming_the_variant_and_the_shape(tmp_path):
+    """Before: ValueError 'operands could not be broadcast together with shapes (2,31,2) (2,31,4)'."""
+    from pipeline.errors import EstimateLayoutError
+    from tests.test_pipeline import run_in_process
+    with pytest.raises(EstimateLayoutError) as info:
+        run_in_process(tmp_path, "bad", "mc.runs=2", "scenario.steps=30", "plugins.packages=[tests]",
+                       "+filters.two={_target_: tests.test_users_round.TwoComponents}")
+    message = str(info.value)
+    assert message.startswith("filters.two (tests.test_users_round.TwoComponents): its state has shape (2, 31, 2), "
+                              "expected (2, 31, 4)")
+    assert "['x', 'vx', 'y', 'vy']" in message and "docs/your-own-filter.md" in message
+
+
+def test_the_base_class_gives_the_layout_of_state_names():
+    from filters.base import MeasurementSeries, SingleTargetFilter
+    series = MeasurementSeries(np.arange(3.0), np.zeros((2, 3, 2)), np.eye(2), np.ones((2, 3), bool), np.zeros(3, int),
+                               state_names=("x", "vx", "y", "vy"))
+    state, covariance = SingleTargetFilter.empty_estimate(series)
+    assert state.shape == (2, 3, 4) and covariance.shape == (2, 3, 4, 4) and np.isnan(state).all()
+    with pytest.raises(TypeError):
+        SingleTargetFilter()                      # run is abstract

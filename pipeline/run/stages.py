@@ -16,7 +16,9 @@ from typing import Any, Callable, Iterator, Mapping
 
 import polars as pl
 
-from pipeline.studies.single_target import filter_chunks, truth_runs, with_fault_flags
+from filters.base import TrackEstimate, layout_problems
+from pipeline.errors import EstimateLayoutError
+from pipeline.studies.single_target import SingleTargetStudy, filter_chunks, truth_runs, with_fault_flags
 
 Codec = Callable[[Any, Mapping[str, Any]], tuple[pl.DataFrame, dict]]     # (value, the inputs) -> table
 Decoder = Callable[[pl.DataFrame, dict[str, str]], Any]
@@ -86,8 +88,29 @@ def declare(cfg: Any, resolved: Mapping[str, Any], prepared: Any, fault_checks: 
         """Each chunk of runs filtered, flagged and framed with its global run numbers."""
         view = track_input(truth, detections)
         for first, part in filter_chunks(estimator, view, chunk_runs):
+            checked_layout(key_of[id(estimator)], estimator, part, truth, first)
             df, meta = with_fault_flags(study, part, truth_runs(truth, first, first + chunk_runs), fault_checks)
             yield df.with_columns(pl.col("run") + first), meta
+
+    key_of = {id(prepared.estimators[v]): v for v in prepared.variants}
+
+    def checked_layout(key: str, estimator: Any, estimate: Any, truth: Any, first: int) -> Any:
+        """``estimate`` (of runs first.. of a single-target study) when its arrays have the truth's
+        layout (filters.base.SingleTargetFilter); else an EstimateLayoutError naming the variant, the
+        class and the shapes expected, before a raw numpy broadcast error in a metric."""
+        if not isinstance(study, SingleTargetStudy) or not isinstance(estimate, TrackEstimate):
+            return estimate
+        runs_here = min(runs - first, chunk_runs or runs)
+        names = tuple(truth.state_names)
+        problems = layout_problems(estimate, runs_here, truth.time.size, names)
+        if problems:
+            raise EstimateLayoutError(
+                f"filters.{key} ({type(estimator).__module__}.{type(estimator).__qualname__}): "
+                + "; ".join(problems) + f". An estimate holds one value per run, scan and state component, "
+                f"the components in the order of MeasurementSeries.state_names {list(names)} (NaN for one "
+                f"the filter does not estimate): the layout contract of filters.base.SingleTargetFilter "
+                f"(docs/your-own-filter.md).")
+        return estimate
 
     for v in prepared.variants:
         estimator = prepared.estimators[v]
@@ -97,7 +120,8 @@ def declare(cfg: Any, resolved: Mapping[str, Any], prepared: Any, fault_checks: 
             # the fault checks decide the table's fault column, so they are part of its key
             {"filter": resolved["filters"][v], **study_node, "faults": resolved.get("faults")},
             ("pipeline.run.stages", "pipeline.storage.schemas", "pipeline.studies.single_target"),
-            lambda truth, detections, e=estimator: e.run(track_input(truth, detections)),   # chunked: track_chunks
+            lambda truth, detections, e=estimator, v=v: checked_layout(
+                v, e, e.run(track_input(truth, detections)), truth, 0),                        # chunked: track_chunks
             lambda estimate, inputs: with_fault_flags(study, estimate, inputs["truth"], fault_checks),
             study.estimate_from_frame,
             lambda i, n=name: f"{n}: {runs} runs x {i['truth'].time.size} scans",
