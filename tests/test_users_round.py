@@ -187,3 +187,27 @@ def test_the_base_class_gives_the_layout_of_state_names():
     assert state.shape == (2, 3, 4) and covariance.shape == (2, 3, 4, 4) and np.isnan(state).all()
     with pytest.raises(TypeError):
         SingleTargetFilter()                      # run is abstract
+
+
+# ---- (f) a stored run re-run with its config, into the artifacts tree ---------------------------------------
+
+def test_a_stored_run_reruns_into_the_artifacts_tree_with_its_config_and_the_overrides(tmp_path, capsys):
+    """Before: no such command; Hydra's --config-path <run>/.hydra wrote to outputs/, which no query reads."""
+    import json
+    from pipeline.results.query import main as query
+    from pipeline.results.rerun import RerunError, rerun
+    from tests.test_pipeline import run_in_process
+    _, stored = run_in_process(tmp_path, "ao_vsimm_s1/stored", "mc.runs=2", "scenario.steps=30")
+    outcome, ctx = rerun(stored.run_dir, ["mc.runs=3", "filters.vsimm.t1_mu=0.85"])
+    assert ctx.run_dir.parent == tmp_path / "runs" / "ao_vsimm_s1" and ctx.run_dir != stored.run_dir
+    status = json.loads((ctx.run_dir / "status.json").read_text())
+    assert status["status"] == "ok" and status["runs"] == 3
+    assert status["overrides"][-2:] == ["mc.runs=3", "filters.vsimm.t1_mu=0.85"]
+    assert outcome.summary["filters.vsimm.t1_mu"][0] == 0.85 and outcome.summary["scenario.steps"][0] == 30
+    assert query(["list", "--root", str(tmp_path), "--format", "csv"]) == 0
+    listed = capsys.readouterr().out
+    assert ctx.run_id in listed and "runs/ao_vsimm_s1/stored" in listed        # the query sees both
+    with pytest.raises(RerunError, match="did you mean 'mc.runs'"):
+        rerun(stored.run_dir, ["mc.runz=3"])
+    with pytest.raises(RerunError, match="composes a new config"):
+        rerun(stored.run_dir, ["scenario=ao_vsimm_s2"])
