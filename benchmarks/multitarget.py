@@ -23,7 +23,7 @@ graph per run; its time is per run, scaled to ``--runs`` for the ratio):
 - GNN: KalmanPredictor/KalmanUpdater on the same CV model (a LinearGaussianTransitionModel subclass
   with F and Q = sigma_v^2 G G' of filters.models), DistanceHypothesiser (Mahalanobis, the same
   gate), GNNWith2DAssignment, MultiMeasurementInitiator (min_points 4, holding tracks deleted
-  after 2 scans without update, prior velocity std 30 m/s: single-point initiation),
+  after 2 scans without update, prior velocity std 15 m/s as ours: single-point initiation),
   UpdateTimeStepsDeleter(3), MultiTargetTracker;
 - GM-PHD: the same models, GaussianMixtureHypothesiser over a DistanceHypothesiser with no gate
   (as Vo & Ma), PHDUpdater, GaussianMixtureReducer(T = 1e-5, U = 4, J_max = 100); the four birth
@@ -242,7 +242,7 @@ def stonesoup_gnn(detections: DetectionSets, r: int, gate: float) -> np.ndarray:
     hypothesiser = DistanceHypothesiser(predictor, updater, measure=Mahalanobis(), missed_distance=np.sqrt(gate))
     associator = GNNWith2DAssignment(hypothesiser)
     initiator = MultiMeasurementInitiator(
-        prior_state=GaussianState(np.zeros((4, 1)), np.diag([0.0, 30.0**2, 0.0, 30.0**2])),
+        prior_state=GaussianState(np.zeros((4, 1)), np.diag([0.0, 15.0**2, 0.0, 15.0**2])),
         deleter=UpdateTimeStepsDeleter(2), data_associator=associator, updater=updater,
         measurement_model=measurement_model, min_points=4)
     tracker = MultiTargetTracker(initiator=initiator, deleter=UpdateTimeStepsDeleter(3),

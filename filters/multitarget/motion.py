@@ -83,7 +83,7 @@ class ConstantVelocity:
 
     state_names = CV_NAMES
 
-    def __init__(self, acceleration_std: float = 5.0, initial_velocity_std: float = 30.0) -> None:
+    def __init__(self, acceleration_std: float = 5.0, initial_velocity_std: float = 15.0) -> None:
         self.acceleration_std = _positive(acceleration_std, "acceleration_std")
         self.initial_velocity_std = _positive(initial_velocity_std, "initial_velocity_std")
         self.H = np.zeros((2, 4))
@@ -132,7 +132,7 @@ class InteractingCVTurn:
 
     state_names = CT_NAMES
 
-    def __init__(self, initial_velocity_std: float = 30.0, cv_acceleration_density: float = 1.0,
+    def __init__(self, initial_velocity_std: float = 15.0, cv_acceleration_density: float = 1.0,
                  ct_acceleration_density: float = 4.0, turn_rate_density: float = 1e-4,
                  sojourn_times=(20.0, 10.0), initial_mode_probabilities=(0.8, 0.2),
                  turn_rate_std: float = 0.1) -> None:

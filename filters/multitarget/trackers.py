@@ -22,11 +22,13 @@ hits; it is deleted as soon as that can no longer happen (after ``confirm_window
 latest). A confirmed track is deleted after ``delete_misses`` consecutive scans without a hit.
 Track ids count from 0 per run in order of initiation; a deleted track's id is never reused.
 
-The defaults (4 of 5, delete after 3, initial velocity std 30 m/s) suit light clutter (about 10
-points a scan on the Vo-Vo region [-1000, 1000]^2): at 50 a scan single-point starts collect clutter
-in their first wide gates and 4 of 5 confirms many of them (5 runs of benchmarks/multitarget.py,
-2026-12-04: GNN mean GOSPA 173 with 4 of 5, 86 with 6 of 8; JPDA 299 and 158); use a longer M of N
-(or a smaller ``initial_velocity_std``) in dense clutter.
+The defaults (4 of 5, delete after 3, initial velocity std 15 m/s: three quarters of the fastest
+Vo-Vo target's 20 m/s per axis, the 0.999 gate then spans some 55 m/s) suit light clutter (about 10
+points a scan on the Vo-Vo region [-1000, 1000]^2; 30 m/s gave a worse GOSPA there for every
+tracker, JPDA 57.8 against 44.9 on 10 runs). At 50 a scan single-point starts collect clutter in
+their first wide gates and 4 of 5 confirms many of them (5 runs of benchmarks/multitarget.py,
+2026-12-04, mean GOSPA: GNN 146 with 4 of 5, 80 with 6 of 8; JPDA 245 and 174): use a longer M of N
+in dense clutter.
 
 Output (TrackSets): state/covariance in DetectionSets.state_names (components the motion lacks
 are NaN); ``existence`` NaN (these trackers carry no existence probability); extras:
@@ -251,7 +253,7 @@ class GNN(_AssociationTracker):
 
     association = "gnn"
 
-    def __init__(self, name: str = "GNN", acceleration_std: float = 5.0, initial_velocity_std: float = 30.0,
+    def __init__(self, name: str = "GNN", acceleration_std: float = 5.0, initial_velocity_std: float = 15.0,
                  **options) -> None:
         super().__init__(name, ConstantVelocity(acceleration_std, initial_velocity_std), **options)
 
@@ -262,7 +264,7 @@ class JPDA(_AssociationTracker):
 
     association = "jpda"
 
-    def __init__(self, name: str = "JPDA", acceleration_std: float = 5.0, initial_velocity_std: float = 30.0,
+    def __init__(self, name: str = "JPDA", acceleration_std: float = 5.0, initial_velocity_std: float = 15.0,
                  **options) -> None:
         super().__init__(name, ConstantVelocity(acceleration_std, initial_velocity_std), **options)
 
@@ -281,7 +283,7 @@ class IMMGNN(_AssociationTracker):
 
     association = "gnn"
 
-    def __init__(self, name: str = "IMM-GNN", initial_velocity_std: float = 30.0, **options) -> None:
+    def __init__(self, name: str = "IMM-GNN", initial_velocity_std: float = 15.0, **options) -> None:
         super().__init__(name, _imm_motion(initial_velocity_std, options), **options)
 
 
@@ -290,5 +292,5 @@ class IMMJPDA(_AssociationTracker):
 
     association = "jpda"
 
-    def __init__(self, name: str = "IMM-JPDA", initial_velocity_std: float = 30.0, **options) -> None:
+    def __init__(self, name: str = "IMM-JPDA", initial_velocity_std: float = 15.0, **options) -> None:
         super().__init__(name, _imm_motion(initial_velocity_std, options), **options)
