@@ -35,6 +35,7 @@ sys.path.insert(0, str(ROOT))
 from benchmarks.results_file import Column, Table, add_results_argument, start, write_result  # noqa: E402
 
 EXPERIMENTS = {"2": "sonobuoy_case2", "1b": "sonobuoy_case1b"}
+REPEATS = 3
 
 
 def reports_for(case: str, runs: int, seed: int):
@@ -102,7 +103,8 @@ def filtering(args) -> int:
     record(args, "", rows, [f"Filtering only: median of {args.repeats}, the engines alternating (a shared machine's "
                             "load hits both alike); the kernel loaded before the clock.",
                             "Final RMSE: position error at the last scan; loss: share of runs ending over 2 km off."],
-           {"particles": int(cfg.target_model.particles), "scans": reports.z.shape[1] - 1})
+           {"particles": int(cfg.target_model.particles), "scans": reports.z.shape[1] - 1,
+            "repeats": f"{args.repeats}" + ("" if args.repeats == REPEATS else f" (the default is {REPEATS})")})
     if args.single_runs:
         return single_runs(args, cfg, reports, variants[0], engines[0])
     return 0
@@ -180,7 +182,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--case", choices=sorted(EXPERIMENTS), default="2")
     parser.add_argument("--runs", type=int, default=100)
-    parser.add_argument("--repeats", type=int, default=3, help="filtering-only timings per variant and engine")
+    parser.add_argument("--repeats", type=int, default=REPEATS, help="filtering-only timings per variant and engine")
     parser.add_argument("--variants", default="ammpf", help="comma-separated: ammpf, sir_mm")
     parser.add_argument("--engines", default="numba,numpy", help="comma-separated: numba, numpy")
     parser.add_argument("--single-runs", type=int, default=0, help="runs also filtered one at a time (0: none)")

@@ -32,16 +32,14 @@ graph per run; its time is per run, scaled to ``--runs`` for the ratio):
 
 Also reported: mean GOSPA (c = 100 m, p = 2) over the Stone Soup runs for both, as a check that the
 two do the same job (not a comparison of accuracy: their initiation and reduction differ in detail).
-The results go to benchmarks/results/multitarget.md (``--write``) with date, commit and machine.
+The results go to benchmarks/results/multitarget.md (and .json; ``--results-dir`` elsewhere) with the
+date, commit, machine and load, through benchmarks/results_file.py.
 """
 
 from __future__ import annotations
 
 import argparse
 import datetime
-import os
-import platform
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -52,6 +50,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
+from benchmarks.results_file import Column, Table, add_results_argument, start, write_result  # noqa: E402
 from filters.models import acceleration_input_gain, constant_velocity_transition  # noqa: E402
 from filters.multitarget import association, motion  # noqa: E402
 from filters.multitarget.base import DetectionSets  # noqa: E402
@@ -299,61 +298,43 @@ def _pad(scans: list[list[np.ndarray]]) -> np.ndarray:
 
 # ---- the run -------------------------------------------------------------------------------------
 
-def machine() -> str:
-    cpu = platform.processor() or platform.machine()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    return f"{platform.node()}, {os.cpu_count()} logical CPUs ({cpu}), Python {platform.python_version()}, numpy {np.__version__}"
-
-
-def commit() -> str:
-    try:
-        return subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True,
-                              check=True).stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        return "unknown"
-
-
 def main(argv=None) -> int:
+    context = start("benchmarks/multitarget.py", argv)
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--runs", type=int, default=100)
     parser.add_argument("--clutter", type=float, nargs="+", default=[10.0])
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--stonesoup-runs", type=int, default=3)
     parser.add_argument("--profile", action="store_true")
-    parser.add_argument("--write", type=Path, default=None, help="markdown file for the results")
+    add_results_argument(parser)
     args = parser.parse_args(argv)
-    lines = [f"# Multi-target trackers on the Vo-Vo scenario ({args.runs} runs x 100 scans)", "",
-             f"- date: {datetime.datetime.now(datetime.timezone.utc):%Y-%m-%d %H:%M} UTC; commit {commit()}",
-             f"- machine: {machine()}",
-             f"- command: `python benchmarks/multitarget.py {' '.join(argv if argv is not None else sys.argv[1:])}`",
-             "- our time: the tracker's compute_seconds (filtering only) on all runs in one call; Stone Soup: "
-             f"per run on its first {args.stonesoup_runs} runs, scaled to {args.runs} runs", ""]
+    columns = [Column("tracker", "tracker"), Column("ours", "ours", "seconds", ".2f"),
+               Column("vs_gnn", "vs our GNN", "ratio", ".1f"), Column("gospa", "GOSPA (ours, all runs)", "number", ".1f"),
+               Column("theirs_per_run", "Stone Soup per run", "seconds", ".2f"),
+               Column("theirs_scaled", f"Stone Soup x {args.runs} runs", "seconds", ".0f"),
+               Column("ratio", "Stone Soup / ours", "ratio", ".0f"),
+               Column("gospa_pair", "GOSPA on the Stone Soup runs (ours / theirs)")]
+    tables, notes = [], [f"Our time: the tracker's compute_seconds (filtering only) on all runs in one call, after one "
+                         f"untimed call on 2 runs (numba's start); Stone Soup: per run on its first "
+                         f"{args.stonesoup_runs} runs, scaled to {args.runs} runs for the ratio.",
+                         "GOSPA: c = 100 m, p = 2, the mean over runs and scans; a check that the two do the same "
+                         "job, not a comparison of accuracy."]
     for clutter in args.clutter:
         truth, detections = vo_vo(args.runs, clutter, args.seed)
         kappa = clutter_density(clutter)
         trackers = ours(clutter)
-        lines += [f"## Clutter {clutter:g} a scan (kappa = {kappa:.3g} m^-2); up to {detections.z.shape[2]} detections a scan",
-                  "", "| tracker | ours [s] | GOSPA (ours, all runs) | Stone Soup [s/run] | Stone Soup x runs [s] | ratio "
-                  "| GOSPA on the Stone Soup runs (ours / theirs) |", "|---|---|---|---|---|---|---|"]
-        small = subset(detections, args.stonesoup_runs)
+        rows = []
+        print(f"clutter {clutter:g} a scan (kappa = {kappa:.3g} m^-2); up to {detections.z.shape[2]} detections a scan")
         for name, tracker in trackers.items():
             tracker.run(subset(detections, 2))                       # numba's start, off the clock
             result = tracker.run(detections)
             estimates = np.where(result.confirmed[..., None], result.state[..., [0, 2]], np.nan)
-            ours_gospa = mean_gospa(estimates, truth)
-            row = f"| {name} | {result.compute_seconds:.2f} | {ours_gospa:.1f} |"
-            theirs = None
+            row = {"tracker": name, "ours": result.compute_seconds, "gospa": mean_gospa(estimates, truth)}
             if args.stonesoup_runs > 0 and name in ("GNN", "GM-PHD"):
                 try:
                     import stonesoup  # noqa: F401
                 except ImportError:
-                    theirs = None
+                    pass
                 else:
                     started = time.perf_counter()
                     if name == "GNN":
@@ -367,29 +348,29 @@ def main(argv=None) -> int:
                     for i, g in enumerate(got):
                         stacked[i, :, : g.shape[1]] = g
                     small_ours = estimates[: args.stonesoup_runs]
-                    theirs = (per_run, mean_gospa(small_ours, truth), mean_gospa(stacked, truth))
-            if theirs is None:
-                row += " - | - | - | - |"
-            else:
-                per_run, g_ours, g_theirs = theirs
-                scaled = per_run * args.runs
-                row += f" {per_run:.2f} | {scaled:.0f} | {scaled / result.compute_seconds:.0f}x | {g_ours:.1f} / {g_theirs:.1f} |"
-            lines.append(row)
+                    row.update({"theirs_per_run": per_run, "theirs_scaled": per_run * args.runs,
+                                "ratio": per_run * args.runs / result.compute_seconds,
+                                "gospa_pair": f"{mean_gospa(small_ours, truth):.1f} / {mean_gospa(stacked, truth):.1f}"})
+            rows.append(row)
             print(row, flush=True)
+        gnn = next(r["ours"] for r in rows if r["tracker"] == "GNN")
+        for row in rows:
+            row["vs_gnn"] = row["ours"] / gnn
+        tables.append(Table(columns, rows, f"Clutter {clutter:g} a scan (kappa = {kappa:.3g} m^-2); up to "
+                                           f"{detections.z.shape[2]} detections a scan:"))
         if args.profile:
-            lines += ["", "Where the time goes (one call on all runs, wrapped functions' wall time [s]):", ""]
             for name in ("GNN", "JPDA", "IMM-GNN"):
                 spent = profile(ours(clutter)[name], detections)
-                parts = ", ".join(f"{k.strip()} {v:.2f}" for k, v in spent.items())
-                lines.append(f"- {name}: {parts}")
-                print(lines[-1], flush=True)
-        lines.append("")
-        del small
-    text = "\n".join(lines) + "\n"
-    print(text)
-    if args.write:
-        args.write.parent.mkdir(parents=True, exist_ok=True)
-        args.write.write_text(text)
+                total = spent.pop("total")
+                parts = ", ".join(f"{k.strip()} {100 * v / total:.0f} %" for k, v in spent.items())
+                notes.append(f"clutter {clutter:g}, where {name}'s time goes (one call on all runs, share of its "
+                             f"compute_seconds): {parts}")
+                print(notes[-1], flush=True)
+    write_result("multitarget", f"Multi-target trackers on the Vo-Vo scenario ({args.runs} runs x 100 scans)",
+                 tables, notes, context=context,
+                 parameters={"runs": args.runs, "scans": 100, "clutter a scan": ", ".join(f"{c:g}" for c in args.clutter),
+                             "Stone Soup runs": args.stonesoup_runs, "seed": args.seed},
+                 directory=args.results_dir)
     return 0
 
 
