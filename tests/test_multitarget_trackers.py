@@ -276,3 +276,15 @@ def test_detections_without_planar_positions_are_refused_by_name():
     for tracker in (GNN(), GMPHD()):
         with pytest.raises(ValueError, match=r"lack \['x', 'y'\]"):
             tracker.run(odd)
+
+
+def test_the_benchmark_writes_its_results(tmp_path):
+    import json
+
+    from benchmarks.multitarget import main
+
+    assert main(["--runs", "2", "--stonesoup-runs", "0", "--results-dir", str(tmp_path)]) == 0
+    record = json.loads((tmp_path / "multitarget.json").read_text())
+    rows = record["tables"][0]["rows"]
+    assert [r["tracker"] for r in rows] == ["GNN", "JPDA", "IMM-GNN", "IMM-JPDA", "GM-PHD"]
+    assert all(r["ours"] > 0 and r["gospa"] > 0 for r in rows)
