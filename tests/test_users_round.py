@@ -211,3 +211,41 @@ def test_a_stored_run_reruns_into_the_artifacts_tree_with_its_config_and_the_ove
         rerun(stored.run_dir, ["mc.runz=3"])
     with pytest.raises(RerunError, match="composes a new config"):
         rerun(stored.run_dir, ["scenario=ao_vsimm_s2"])
+
+
+# ---- (b) first use: the compile is announced; a warm-up command compiles up front ---------------------------
+
+def test_a_slow_kernel_load_says_once_that_it_compiles_and_how_long_it_took(caplog):
+    """Before: the first job compiled for 21.5 s without a word."""
+    import logging
+    import time as clock
+    from filters.compiling import compiling
+    with caplog.at_level(logging.INFO, logger="filters.compiling"):
+        with compiling("filters.example.kernel", notice_after_s=0.05):
+            clock.sleep(0.3)
+        with compiling("filters.example.kernel", notice_after_s=5.0):
+            pass                                              # a cached load: nothing said
+    lines = [r.getMessage() for r in caplog.records if r.name == "filters.compiling"]
+    assert len(lines) == 2 and lines[0].startswith("compiling the numba kernels of filters.example.kernel: once per "
+                                                   "install") and "python -m pipeline.run.warmup" in lines[0]
+    assert lines[1].startswith("compiled the numba kernels of filters.example.kernel in ")
+
+
+def test_every_kernel_warm_up_is_announced():
+    import re
+    root = Path(__file__).resolve().parents[1]
+    sites = 0
+    for path in sorted((root / "filters").glob("*/reference.py")):
+        lines = path.read_text().splitlines()
+        for i, line in enumerate(lines):
+            if re.search(r"\w+_kernel\.warm_up\(\)", line):
+                sites += 1
+                assert "with compiling(" in lines[i - 1], f"{path}:{i + 1}"
+    assert sites >= 6
+
+
+def test_the_warm_up_command_runs_a_study_and_the_readme_names_it(capsys):
+    from pipeline.run.warmup import main
+    assert main(["--experiments", "ao_vsimm_s1"]) == 0
+    assert capsys.readouterr().out.startswith("ao_vsimm_s1: ")
+    assert "python -m pipeline.run.warmup" in (Path(__file__).resolve().parents[1] / "README.md").read_text()

@@ -45,6 +45,7 @@ from typing import Sequence
 import numpy as np
 
 from filters.base import checked_engine
+from filters.compiling import compiling
 from filters.kalman import einsum, inverse_2x2, rows_times, shared_times, times_shared
 from filters.progress import counted
 
@@ -494,7 +495,8 @@ class LocalTracking:
     def run(self, reports: RadarReports) -> BiasRegistrationResult:
         if self.engine == "numba":
             from filters.bias import kernel as bias_kernel
-            bias_kernel.warm_up()               # numba's start before the clock: compute_seconds is the filtering's
+            with compiling("filters.bias.kernel"):     # says so when numba compiles (the first job of an install)
+                bias_kernel.warm_up()               # numba's start before the clock: compute_seconds is the filtering's
         started = _time.perf_counter()
         R, K, T, _ = reports.z.shape
         S = reports.sensors

@@ -35,6 +35,7 @@ from typing import Literal
 import numpy as np
 
 from filters.base import MeasurementSeries, TrackEstimate, checked_engine
+from filters.compiling import compiling
 from filters.kalman import einsum, predict, rows_times, shared_times, times_shared, update
 from filters.models import AccelerationModelSet, two_point_initialisation, two_point_start
 from filters.progress import counted
@@ -407,7 +408,8 @@ class _IMMBase:
         process comes first."""
         if self.engine == "numba":
             from filters.imm import kernel as imm_kernel
-            imm_kernel.warm_up()
+            with compiling("filters.imm.kernel"):     # says so when numba compiles (the first job of an install)
+                imm_kernel.warm_up()
         started = time.perf_counter()
         z = measurements.z
         R, K, _ = z.shape

@@ -57,6 +57,7 @@ from typing import Literal
 import numpy as np
 
 from filters.base import MeasurementSeries, TrackEstimate, checked_engine
+from filters.compiling import compiling
 from filters.coordinates import (converted_covariance, line_of_sight_angles, los_noise_variances, los_rotation,
                                  polar_to_cartesian)
 from filters.kalman import einsum, rows_times
@@ -116,7 +117,8 @@ class _MIEBase:
         see that module)."""
         from filters.input_estimation import kernel as mie_kernel
 
-        mie_kernel.warm_up()                    # numba's start before the clock: compute_seconds is the filtering's
+        with compiling("filters.input_estimation.kernel"):     # says so when numba compiles (the first job of an install)
+            mie_kernel.warm_up()                    # numba's start before the clock: compute_seconds is the filtering's
         started = time.perf_counter()
         z, polar_var, dt = self._checked(measurements)
         self._model(dt)

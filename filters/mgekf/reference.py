@@ -73,6 +73,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from filters.base import TrackEstimate, checked_engine
+from filters.compiling import compiling
 from filters.kalman import einsum, rows_times, shared_times, times_shared
 from filters.models import singer_process_noise, singer_transition
 from filters.progress import counted, current
@@ -408,7 +409,8 @@ class _SonarTracker:
         in one compiled loop (see that module for what differs from the numpy scans: rounding)."""
         from filters.mgekf import kernel as mgekf_kernel
 
-        mgekf_kernel.warm_up()                  # numba's start before the clock: compute_seconds is the filtering's
+        with compiling("filters.mgekf.kernel"):     # says so when numba compiles (the first job of an install)
+            mgekf_kernel.warm_up()                  # numba's start before the clock: compute_seconds is the filtering's
         started = _time.perf_counter()
         R, K, _ = reports.z.shape
         states, covariances, nis = self._outputs(reports)

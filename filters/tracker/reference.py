@@ -44,6 +44,7 @@ from typing import Literal
 import numpy as np
 
 from filters.base import MeasurementSeries, TrackEstimate, checked_engine
+from filters.compiling import compiling
 from filters.kalman import einsum as kalman_einsum
 from filters.kalman import predict, rows_times
 from filters.coordinates import converted_covariance, polar_to_cartesian
@@ -108,7 +109,8 @@ class KalmanTracker:
     def run(self, measurements) -> TrackEstimate:
         if self.engine == "numba" and isinstance(measurements, MeasurementSeries):
             from filters.tracker import kernel as kalman_kernel
-            kalman_kernel.warm_up()         # numba's start before the clock: compute_seconds is the filtering's
+            with compiling("filters.tracker.kernel"):     # says so when numba compiles (the first job of an install)
+                kalman_kernel.warm_up()         # numba's start before the clock: compute_seconds is the filtering's
         started = time.perf_counter()
         if isinstance(measurements, SonarReports):
             state, covariance, names, extras = self._run_sonar(measurements)

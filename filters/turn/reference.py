@@ -79,6 +79,7 @@ from typing import Sequence
 import numpy as np
 
 from filters.base import MeasurementSeries, TrackEstimate, checked_engine
+from filters.compiling import compiling
 from filters.imm import ModeSet, combine, combined_prediction_nis
 from filters.kalman import einsum, update
 from filters.models import two_point_start
@@ -255,7 +256,8 @@ class CVCTIMM:
     def run(self, measurements: MeasurementSeries) -> TrackEstimate:
         if self.engine == "numba":
             from filters.tracker import kernel as kalman_kernel
-            kalman_kernel.warm_up()         # numba's start before the clock: compute_seconds is the filtering's
+            with compiling("filters.tracker.kernel"):     # says so when numba compiles (the first job of an install)
+                kalman_kernel.warm_up()         # numba's start before the clock: compute_seconds is the filtering's
         started = time.perf_counter()
         if not isinstance(measurements, MeasurementSeries):
             raise TypeError(f"{self.name}: takes {sorted(self.accepts)} measurements, "
