@@ -18,7 +18,7 @@ from pipeline.data import Truth
 from pipeline.evaluation.metrics import is_count, nees, unit_of
 from pipeline.evaluation.timing import Timing, compute_row_fields, ratio_fields
 from pipeline.evaluation.uncertainty import (CONFIDENCE, RESAMPLES, Estimated, Interval, RunValues, WindowStatistic,
-                                  comparisons_schema, counts_as_flags, summarize)
+                                  comparisons_schema, counts_as_flags, normalised_squared, summarize)
 
 AXES = ("x", "y", "z")
 @dataclass(frozen=True)
@@ -103,7 +103,7 @@ def consistency(name: str, values: np.ndarray, dof: np.ndarray | int,
                 probability: float | None = None) -> dict[str, RunValues | np.ndarray]:
     """``consistency_metrics`` with the run average kept per run (its interval: a mean over runs)."""
     band = consistency_metrics(name, values, dof, CONSISTENCY_PROBABILITY if probability is None else probability)
-    band[name] = RunValues(np.asarray(values, dtype=float), "mean")
+    band[name] = normalised_squared(values)
     return band
 
 
@@ -122,7 +122,8 @@ def consistency_metrics(name: str, values: np.ndarray, dof: np.ndarray | int,
     ``{name}_upper`` the ``probability`` band of that mean for a consistent filter (Bar-Shalom,
     Li & Kirubarajan 2001, 5.4.2): with N valid runs whose dofs sum to D, the sum of the N values
     is chi-square(D), so the mean lies in [chi2.ppf(a/2, D), chi2.ppf(1 - a/2, D)] / N with
-    probability 1 - a. NaN where no run has a value.
+    probability 1 - a. NaN where no run has a value, and where a run's value is below zero (impossible
+    for e' P^-1 e with P positive definite: ``normalised_squared``).
     """
     from scipy.stats import chi2
 
@@ -136,6 +137,7 @@ def consistency_metrics(name: str, values: np.ndarray, dof: np.ndarray | int,
         mean = np.where(counts > 0, np.where(valid, values, 0.0).sum(axis=0) / np.maximum(counts, 1), np.nan)
         lower = np.where(counts > 0, chi2.ppf(tail, np.maximum(total_dof, 1e-12)) / np.maximum(counts, 1), np.nan)
         upper = np.where(counts > 0, chi2.ppf(1.0 - tail, np.maximum(total_dof, 1e-12)) / np.maximum(counts, 1), np.nan)
+        mean = np.where((values < 0).any(axis=0), np.nan, mean)      # an impossible value: no mean (normalised_squared)
     return {name: mean, f"{name}_lower": lower, f"{name}_upper": upper}
 
 

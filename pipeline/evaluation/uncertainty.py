@@ -67,12 +67,17 @@ class RunValues:
     ``weights`` (R, K): the denominators of ``rms`` and ``mean`` (a run's NIS summed over its targets
     with weight = its number of targets makes the per-target mean); default 1 where a value exists.
     ``scale`` (K,): a fixed divisor of the per-step value (an RMSE over a bound: the ratio to the bound).
+    ``impossible`` (R, K) bool: the run's value at the step exists but cannot be (a NEES below zero, from a
+    covariance that is not positive definite): that value is dropped, and so is every Monte Carlo value
+    it would enter: the per-step value at that step, a window statistic over it and its interval (NaN:
+    null in the tables, with the run's fault flag), rather than a mean over the other runs.
     """
 
     values: np.ndarray
     across_runs: Literal["rms", "mean", "sum", "median"]
     weights: np.ndarray | None = None
     scale: np.ndarray | None = None
+    impossible: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         values = np.asarray(self.values, dtype=float)
@@ -81,6 +86,13 @@ class RunValues:
         if values.ndim != (3 if values.ndim == 3 and self.across_runs == "median" else 2):
             raise ValueError(f"RunValues.values: shape {values.shape} must be (runs, steps)"
                              + (" or (runs, steps, members)" if self.across_runs == "median" else ""))
+        if self.impossible is not None:
+            impossible = np.broadcast_to(np.asarray(self.impossible, dtype=bool), values.shape[:2])
+            if impossible.any():
+                values = np.where(impossible.reshape(impossible.shape + (1,) * (values.ndim - 2)), np.nan, values)
+                object.__setattr__(self, "impossible", impossible)
+            else:
+                object.__setattr__(self, "impossible", None)
         object.__setattr__(self, "values", values)
         if self.weights is not None:
             if self.across_runs not in ("rms", "mean"):
@@ -102,7 +114,7 @@ class RunValues:
         """The same metric divided by a fixed (K,) per-step value (an RMSE over a bound: the ratio)."""
         if self.scale is not None:
             raise ValueError("RunValues.over: the metric is already divided by a scale")
-        return RunValues(self.values, self.across_runs, self.weights, np.asarray(scale, dtype=float))
+        return RunValues(self.values, self.across_runs, self.weights, np.asarray(scale, dtype=float), self.impossible)
 
     def valid(self) -> np.ndarray:
         """(R, K): the run has a value at the step."""
@@ -110,7 +122,13 @@ class RunValues:
         return finite.any(axis=-1) if finite.ndim == 3 else finite
 
     def per_step(self) -> np.ndarray:
-        """(K,) the Monte Carlo value at each step (NaN where no run has one)."""
+        """(K,) the Monte Carlo value at each step (NaN where no run has one, or one run's is impossible)."""
+        per_step = self._per_step()
+        if self.impossible is not None:
+            per_step = np.where(self.impossible.any(axis=0), np.nan, per_step)
+        return per_step
+
+    def _per_step(self) -> np.ndarray:
         with warnings.catch_warnings(), np.errstate(invalid="ignore", divide="ignore"):
             warnings.simplefilter("ignore", RuntimeWarning)
             v = self.values
@@ -304,8 +322,14 @@ class WindowStatistic:
                              f"{self.values.across_runs!r}")
         object.__setattr__(self, "steps", np.asarray(self.steps, dtype=np.intp).reshape(-1))
 
+    def impossible(self) -> bool:
+        """A run's value in the window is impossible (``RunValues.impossible``): so is the statistic."""
+        return self.values.impossible is not None and bool(self.values.impossible[:, self.steps].any())
+
     def value(self) -> float:
-        """The Monte Carlo value (NaN when the window holds no value)."""
+        """The Monte Carlo value (NaN when the window holds no value, or an impossible one)."""
+        if self.impossible():
+            return float("nan")
         if self.over_steps == "pool":
             return float(self._pooled(np.ones((1, self.values.runs)))[0])
         return float(_reduce(self.values.per_step()[self.steps][None, :], self.over_steps)[0])
@@ -351,7 +375,14 @@ class WindowStatistic:
     def per_run(self) -> np.ndarray:
         """(R,) each run's own value over the window (NaN for a run without one): the run's RMS error
         over the window's steps (``rms``), its mean (``mean``; for ``median``, of its members too), its
-        count (``sum``), or its peak (``max``). The per-run table and the paired test read these."""
+        count (``sum``), or its peak (``max``). The per-run table and the paired test read these. NaN
+        for a run with an impossible value in the window."""
+        own = self._per_run()
+        if self.values.impossible is not None:
+            own = np.where(self.values.impossible[:, self.steps].any(axis=1), np.nan, own)
+        return own
+
+    def _per_run(self) -> np.ndarray:
         window = self.values.per_run_values()[:, self.steps]
         if window.ndim == 3:
             window = np.nanmean(window, axis=2) if window.shape[2] else window[..., 0]
@@ -375,7 +406,7 @@ class WindowStatistic:
         sum over steps, without weights, when every valid run has a value at the same steps."""
         rv = self.values
         if rv.across_runs not in ("mean", "sum") or rv.weights is not None or rv.scale is not None \
-                or self.over_steps not in ("mean", "sum"):
+                or self.over_steps not in ("mean", "sum") or self.impossible():
             return None
         if rv.values.ndim == 3:
             return None
@@ -424,7 +455,7 @@ class Interval:
     standard_error: float
     low: float
     high: float
-    method: str                 # t | exact | bootstrap BCa | bootstrap percentile | constant | none
+    method: str                 # t | exact | bootstrap BCa | bootstrap percentile | constant | none | impossible
 
 
 def plain_interval(own: np.ndarray, scale: float, confidence: float, value: float) -> Interval:
@@ -520,7 +551,12 @@ def _resampled(groups: Sequence[tuple[RunValues, Sequence[WindowStatistic]]], ru
     with warnings.catch_warnings(), np.errstate(invalid="ignore", divide="ignore"):
         warnings.simplefilter("ignore", RuntimeWarning)
         # the resamples are the work (the jackknife's and the point's rows are few): their progress
-        return evaluate(counts, current_progress()), evaluate(jack_counts), evaluate(np.ones((1, runs)))
+        results = evaluate(counts, current_progress()), evaluate(jack_counts), evaluate(np.ones((1, runs)))
+    impossible = [s.impossible() for _, statistics in groups for s in statistics]
+    for values in results:                  # an impossible value in a window: no value on any resample
+        for i in np.flatnonzero(impossible):
+            values[i] = np.full_like(values[i], np.nan)
+    return results
 
 
 def _bca(distribution: np.ndarray, jackknife: np.ndarray, point: np.ndarray, confidence: float):
@@ -589,6 +625,7 @@ class Resampled:
     distribution: np.ndarray                       # (B,) its value on each bootstrap resample
     jackknife: np.ndarray                          # (R,) ... with each run left out
     all_runs: np.ndarray                           # (1,) ... on all runs once: the BCa's reference point
+    impossible: bool = False                       # WindowStatistic.impossible(): null value and interval
     # (the arrays keep the resampling's dtype: float32 for large counts, ResampledTotals; pairs are
     # formed in it and cast to float64 after, as in bootstrap_values)
 
@@ -635,7 +672,7 @@ def resample(statistics: Sequence[WindowStatistic], seed: int, resamples: int = 
     distribution, jackknife, point = _resampled(groups, runs, stream_seed(seed, "summary"), resamples)
     at = {i: p for p, i in enumerate(flat_order)}
     return [Resampled(s.value(), s.valid_runs(), s.plain_mean(), s.per_run(), distribution[at[i]],
-                      jackknife[at[i]], point[at[i]]) for i, s in enumerate(statistics)]
+                      jackknife[at[i]], point[at[i]], s.impossible()) for i, s in enumerate(statistics)]
 
 
 def summarize(rows: Sequence[Estimated], reference: str | None, seed: int, confidence: float = CONFIDENCE,
@@ -689,7 +726,9 @@ def summarize(rows: Sequence[Estimated], reference: str | None, seed: int, confi
         valid = statistic.valid_runs()
         n = int(valid.sum())
         plain = statistic.plain_mean()
-        if plain is not None and np.isfinite(points[i]):
+        if statistic.impossible:
+            intervals[i] = Interval(points[i], n, float("nan"), float("nan"), float("nan"), "impossible")
+        elif plain is not None and np.isfinite(points[i]):
             intervals[i] = plain_interval(plain[0], plain[1], confidence, points[i])
         elif not np.isfinite(points[i]) or n < 2:
             intervals[i] = Interval(points[i], n, float("nan"), float("nan"), float("nan"), "none")
@@ -722,6 +761,15 @@ def summarize(rows: Sequence[Estimated], reference: str | None, seed: int, confi
             "wilcoxon_p": p_value, "resolved": resolved,
         })
     return intervals, comparisons
+
+
+def normalised_squared(values: np.ndarray, across_runs: Literal["mean", "median"] = "mean") -> RunValues:
+    """A NEES or NIS kept per run, (R, K): e' P^-1 e is >= 0 for any positive-definite P, so a value
+    below zero (a covariance that is not positive definite: the run's fault flag) is impossible, and
+    so is every Monte Carlo value it would enter (``RunValues.impossible``): null, never a number."""
+    values = np.asarray(values, dtype=float)
+    with np.errstate(invalid="ignore"):
+        return RunValues(values, across_runs, impossible=values < 0)
 
 
 def counts_as_flags(flags: np.ndarray) -> np.ndarray:

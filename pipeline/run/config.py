@@ -66,6 +66,28 @@ def selected_variants(cfg: DictConfig) -> list[str]:
     return list(wanted)
 
 
+MIN_RESAMPLES = 100        # a 95 % BCa interval reads its ends 2.5 % in: below ~100 resamples that is a couple of draws
+
+
+def check_uncertainty(cfg: DictConfig) -> None:
+    """``uncertainty.confidence`` in (0, 1) and ``uncertainty.bootstrap_resamples`` an integer >= 100.
+    A confidence of 0 made every interval a point and every paired difference resolved (the interval
+    excluding its own estimate), 1 made them infinite, 1.5 was taken; 0 resamples failed in the
+    bootstrap with a traceback after every track stage had run."""
+    uncertainty = cfg.get("uncertainty") or {}
+    confidence = uncertainty.get("confidence", 0.95)
+    if isinstance(confidence, bool) or not isinstance(confidence, (int, float)) or not 0 < confidence < 1:
+        raise ConfigError(f"uncertainty.confidence: {confidence!r} is not allowed; the confidence of every interval "
+                          f"and paired comparison must be a number strictly between 0 and 1 (e.g. 0.95 for 95 %): "
+                          f"0 would make every interval its point (and every difference 'resolved'), 1 would make "
+                          f"every interval infinite.")
+    resamples = uncertainty.get("bootstrap_resamples", 2000)
+    if not _is_int(resamples) or resamples < MIN_RESAMPLES:
+        raise ConfigError(f"uncertainty.bootstrap_resamples: {resamples!r} is not allowed; the number of bootstrap "
+                          f"resamples of the runs must be an integer >= {MIN_RESAMPLES} (default 2000; a BCa "
+                          f"interval reads its ends from the tails of the resamples, which fewer cannot resolve).")
+
+
 def validate(cfg: DictConfig) -> None:
     """Reject bad values before any stage runs."""
     check_targets(cfg)             # before anything imports a _target_ (the kind and type checks do)
@@ -95,6 +117,7 @@ def validate(cfg: DictConfig) -> None:
     if not _is_int(seed) or not 0 <= seed <= SEED_MAX:
         raise ConfigError(f"mc.seed: {seed!r} is not allowed; the seed must be an integer from 0 to {SEED_MAX} "
                           f"(2**63 - 1: it is stored as a 64-bit column of every table).")
+    check_uncertainty(cfg)
     chunk = cfg.mc.get("chunk_runs")
     if chunk is not None and (not _is_int(chunk) or chunk < 1):
         raise ConfigError(f"mc.chunk_runs: {chunk!r} is not allowed; it must be an integer >= 1 (runs filtered "

@@ -21,11 +21,17 @@ import polars as pl
 
 from pipeline.evaluation.metrics import format_value, printed_columns
 
+IMPOSSIBLE = "impossible"           # the interval method of a value that cannot be (pipeline.evaluation.uncertainty)
+IMPOSSIBLE_TEXT = "n/a (flagged)"   # printed in its place: a run's value is impossible (a fault_runs_* count says which)
+
+
 def format_summary(summary: pl.DataFrame, experiment: str, runs: int,
                    comparisons: pl.DataFrame | None = None) -> str:
     """Variant x metric table, one block per window (window-free metrics shown in every block). A value
     with an interval (the summary's ci_low / ci_high) prints as ``value ± half its width``; with
-    ``comparisons`` (pipeline.evaluation.uncertainty), the paired differences with the reference variant follow."""
+    ``comparisons`` (pipeline.evaluation.uncertainty), the paired differences with the reference variant follow.
+    A value that is impossible (a NEES below zero: interval ``impossible``, value null) prints as
+    ``n/a (flagged)``."""
     shown = {m for m, _ in printed_columns(set(summary["series"].unique().to_list()))}
     windows = [w for w in summary.filter(pl.col("series").is_in(shown))["window"].unique(maintain_order=True).to_list()
                if w is not None and " by step " not in w]
@@ -45,7 +51,8 @@ def format_summary(summary: pl.DataFrame, experiment: str, runs: int,
             for m, _ in cols:
                 hit = rows.filter((pl.col("variant") == v) & (pl.col("series") == m))
                 if hit.height == 0 or hit["value"][0] is None:
-                    row.append("")
+                    impossible = "interval" in hit.columns and hit.height and hit["interval"][0] == IMPOSSIBLE
+                    row.append(IMPOSSIBLE_TEXT if impossible else "")
                     continue
                 text = format_value(m, hit["value"][0])
                 if with_intervals and hit["ci_low"][0] is not None and hit["ci_high"][0] is not None:

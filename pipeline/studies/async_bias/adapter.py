@@ -30,7 +30,7 @@ from pipeline.data import Detections, Truth
 from pipeline.errors import ConfigError
 from pipeline.run.seeding import run_generators
 from pipeline.evaluation.evaluate import consistency, consistency_metrics, quiet_nanmean
-from pipeline.evaluation.uncertainty import RunValues
+from pipeline.evaluation.uncertainty import RunValues, normalised_squared
 
 
 class BiasRegistrationStudy(Study):
@@ -176,13 +176,14 @@ def bias_study_metrics(truth: Truth, result: BiasRegistrationResult, true_bias: 
                     j = 4 * s + c
                     # before the first report the estimate is the prior mean 0
                     out[f"bias_rmse_{name}_s{s + 1}"] = RunValues(on_grid(err[..., j] ** 2, prior=true_bias[j] ** 2), "rms")
-            band = consistency("bias_nees", nees(err, result.bias_covariance), err.shape[-1])    # 95 % band, 4S dof
+            bias_nees = nees(err, result.bias_covariance)
+            band = consistency("bias_nees", bias_nees, err.shape[-1])    # 95 % band, 4S dof
             out.update({name: on_grid(values) for name, values in band.items() if not isinstance(values, RunValues)})
-            out["bias_nees"] = RunValues(on_grid(band["bias_nees"].values), "mean")
+            out["bias_nees"] = normalised_squared(on_grid(bias_nees))
             for s in range(S):
                 block = slice(4 * s, 4 * s + 4)
-                out[f"bias_nees_s{s + 1}"] = RunValues(
-                    on_grid(nees(err[..., block], result.bias_covariance[..., block, block])), "mean")
+                out[f"bias_nees_s{s + 1}"] = normalised_squared(
+                    on_grid(nees(err[..., block], result.bias_covariance[..., block, block])))
         truth_at = truth.state[:, steps][:, :, result.targets]              # (R, K, Tsel, 4)
         for s in range(S):
             mine = np.nonzero(result.sensor == s)[0]
@@ -196,8 +197,8 @@ def bias_study_metrics(truth: Truth, result: BiasRegistrationResult, true_bias: 
                     out[f"position_rmse_{label}{kind}"] = RunValues(on_grid(np.sum(e[..., :2]**2, -1), mine), "rms")
                     out[f"velocity_rmse_{label}{kind}"] = RunValues(on_grid(np.sum(e[..., 2:]**2, -1), mine), "rms")
                 e = result.compensated_state[:, mine, col] - true_state
-                out[f"track_nees_{label}_compensated"] = RunValues(
-                    on_grid(nees(e, result.compensated_covariance[:, mine, col]), mine), "mean")
+                out[f"track_nees_{label}_compensated"] = normalised_squared(
+                    on_grid(nees(e, result.compensated_covariance[:, mine, col]), mine))
         if result.nis is not None and result.nis_dof is not None:
             for s in range(S):
                 mine = np.nonzero(result.sensor == s)[0]

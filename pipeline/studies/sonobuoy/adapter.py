@@ -31,7 +31,7 @@ from pipeline.errors import ConfigError
 from pipeline.run.seeding import run_generators
 from pipeline.evaluation.bounds import PerTruth
 from pipeline.evaluation.evaluate import consistency, nis_metrics, quiet_nanmean, summary_row
-from pipeline.evaluation.uncertainty import RunValues, WindowStatistic
+from pipeline.evaluation.uncertainty import RunValues, WindowStatistic, normalised_squared
 
 register(
     Metric("position_median_error", "m"), Metric("buoy_position_rmse", "m"), Metric("buoy_position_median_error", "m"),
@@ -140,7 +140,7 @@ class SonobuoyStudy(Study):
             out.update(consistency("nees_position", position_nees, 2))
             # the mean is what a consistency check reads, but one collapsed cloud (covariance of
             # centimetres, error of metres) dominates it: the median shows the typical run
-            out["nees_position_median"] = RunValues(position_nees, "median")
+            out["nees_position_median"] = normalised_squared(position_nees, "median")
             extras = estimate.extras
             out.update(nis_metrics(extras, per_run=True))
             if "ess" in extras:
