@@ -68,7 +68,7 @@ def test_crossing_scenario_passes_its_crossing_points_in_turns():
 
 def test_sensor_detects_with_pd_adds_poisson_clutter_and_hides_the_origin(vo_vo):
     truth = vo_vo.generate(40, 1)
-    sensor = ClutteredPositions(detection_probability=0.9, clutter_rate=20.0)
+    sensor = ClutteredPositions(detection_probability=0.9, clutter_density=5e-6)
     d = sensor.measure(truth, 5)
     exists = alive(truth)
     from_target = (d.target >= 0) & d.detected
@@ -102,7 +102,7 @@ def test_long_tables_hold_only_what_exists_and_read_back_exactly(vo_vo_truth):
     back = codec.truth_from_frame(df, meta)
     np.testing.assert_array_equal(back.state, truth.state)
     np.testing.assert_array_equal(back.labels["turn_rate"], truth.labels["turn_rate"])
-    d = ClutteredPositions(clutter_rate=5.0).measure(truth, 2)
+    d = ClutteredPositions(clutter_density=1.25e-6).measure(truth, 2)
     df, meta = codec.detections_to_frame(d)
     assert df.height == d.detected.sum()
     counts = df.group_by("run", "step").len()
@@ -167,12 +167,12 @@ def test_stone_soup_trackers_track_two_clean_targets(kind):
 
     from pipeline.stonesoup.tracker import StoneSoupTracker
     truth = LinearBirthDeath([[-200.0, 10.0, 0.0, 0.0, 1, 30], [200.0, -10.0, 100.0, 0.0, 1, 30]], scans=30).generate(2, 0)
-    sensor = ClutteredPositions(detection_probability=1.0, clutter_rate=0.0)
+    sensor = ClutteredPositions(detection_probability=1.0, clutter_density=0.0)
     sets = detection_sets(sensor.measure(truth, 1), sensor.noise_covariance)
     tracker = StoneSoupTracker(kind, CombinedLinearGaussianTransitionModel([ConstantVelocity(1.0)] * 2),
                                LinearGaussian(ndim_state=4, mapping=(0, 2), noise_covar=np.eye(2) * 100.0),
                                birth_means=[[-200.0, 10.0, 0.0, 0.0], [200.0, -10.0, 100.0, 0.0]], birth_std=[20, 5, 20, 5],
-                               clutter_rate=1.0, min_points=3, workers=1)
+                               clutter_density=1e-7, min_points=3, workers=1)
     tracks = tracker.run(sets)
     metrics = MultiTargetStudy().per_step_metrics(truth, tracks, sensor)
     late = metrics["gospa"].values[:, 10:]
@@ -191,19 +191,20 @@ def test_reduced_vo_vo_run_scores_reports_and_records(tmp_path):
     from pipeline.results.report import write_reports
     from tests.test_pipeline import run_in_process
     _, ctx = run_in_process(tmp_path, "multitarget_vo_vo", "experiment=multitarget_vo_vo", "mc.runs=2",
-                                  "scenario.scans=25", "variants=[ss_gmphd]",
-                                  "+study.paired.ss_gmphd=ss_gmphd")
+                                  "scenario.scans=25", "variants=[gnn,jpda,gmphd,ss_gmphd]")
     run_dir = ctx.run_dir
     truth = pl.read_parquet(run_dir / "truth.parquet")
     assert truth.height == 2 * (3 * 19 + 6 * 6)                         # only the targets that exist
-    tracks = pl.read_parquet(run_dir / "estimates" / "ss_gmphd.parquet")
+    tracks = pl.read_parquet(run_dir / "estimates" / "gmphd.parquet")
     assert {"track_id", "x", "P", "confirmed", "existence", "cardinality", "fault"} <= set(tracks.columns)
     summary = pl.read_parquet(run_dir / "summary.parquet")
-    wide = summary.filter(pl.col("window") == "all")
-    gospa = wide.filter(pl.col("series") == "gospa")["value"][0]
-    assert 0 < gospa < 100.0
+    wide = summary.filter((pl.col("window") == "all") & (pl.col("series") == "gospa"))
+    assert wide.height == 4 and ((0 < wide["value"]) & (wide["value"] < 100.0)).all()
     difference = summary.filter(pl.col("series") == "gospa_paired_difference")
-    assert difference.height == 1 and difference["value"][0] == 0.0
+    assert difference["variant_key"].to_list() == ["gmphd"] and difference["window"][0] == "minus ss_gmphd"
+    assert difference["ci_low"][0] <= difference["value"][0] <= difference["ci_high"][0]
     (report,), _ = write_reports(run_dir, tmp_path / "report")
     text = report.path.read_text()
-    assert "GOSPA" in text and not [t for t in report.targets if t.verdict == "ERROR"]
+    assert "GOSPA" in text and "ours_minus_stone_soup" in text
+    assert {t.spec.id: t.verdict for t in report.targets}.keys() == {"gmphd_cardinality_follows_truth", "jpda_at_or_below_gnn"}
+    assert not [t for t in report.targets if t.verdict == "ERROR"]

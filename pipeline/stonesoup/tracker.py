@@ -56,8 +56,7 @@ class StoneSoupTracker(MultiTargetTracker):
         detection sets' noise covariance
     gate : the hypothesiser's missed distance (Mahalanobis) [-]
     min_points, delete_after, initial_velocity_std : the GNN's track initiation and deletion (above)
-    detection_probability, survival_probability : the GM-PHD's model; clutter_rate (per scan) over
-        clutter_region [[x_min, x_max], [y_min, y_max]] makes its clutter density
+    detection_probability, survival_probability, clutter_density [1/m^2] : the GM-PHD's model
     birth_means (rows x, vx, y, vy), birth_std (4,), birth_weight : its birth intensity
     prune_threshold, merge_threshold (squared Mahalanobis), max_components, extraction_threshold : its reduction and extraction
     workers : processes; null: the usable processors for 20 runs or more, else this process
@@ -68,8 +67,7 @@ class StoneSoupTracker(MultiTargetTracker):
     def __init__(self, kind: str, transition_model: Any, measurement_model: Any, name: str | None = None,
                  gate: float = 3.0, min_points: int = 2, delete_after: int = 3, initial_velocity_std: float = 20.0,
                  detection_probability: float = 0.98, survival_probability: float = 0.99,
-                 clutter_rate: float = 10.0,
-                 clutter_region: Sequence[Sequence[float]] = ((-1000.0, 1000.0), (-1000.0, 1000.0)),
+                 clutter_density: float = 2.5e-6,
                  birth_means: Sequence[Sequence[float]] = ((0.0, 0.0, 0.0, 0.0),),
                  birth_std: Sequence[float] = (10.0, 10.0, 10.0, 10.0), birth_weight: float = 0.03,
                  prune_threshold: float = 1e-5, merge_threshold: float = 4.0, max_components: int = 100,
@@ -78,7 +76,7 @@ class StoneSoupTracker(MultiTargetTracker):
         if kind not in KINDS:
             raise ValueError(f"kind: {kind!r} is not a Stone Soup tracker here; use one of {list(KINDS)}")
         for key, value, low in (("gate", gate, 0.0), ("initial_velocity_std", initial_velocity_std, 0.0),
-                                ("clutter_rate", clutter_rate, 0.0), ("birth_weight", birth_weight, 0.0),
+                                ("clutter_density", clutter_density, 0.0), ("birth_weight", birth_weight, 0.0),
                                 ("merge_threshold", merge_threshold, 0.0)):
             if not (np.isfinite(value) and value > low):
                 raise ValueError(f"{key}: {value!r} must be a finite number > {low:g}")
@@ -104,10 +102,7 @@ class StoneSoupTracker(MultiTargetTracker):
         self.gate, self.min_points, self.delete_after = float(gate), int(min_points), int(delete_after)
         self.initial_velocity_std = float(initial_velocity_std)
         self.detection_probability, self.survival_probability = float(detection_probability), float(survival_probability)
-        region = np.asarray(clutter_region, dtype=float)
-        if region.shape != (2, 2) or not np.all(np.isfinite(region)) or not np.all(region[:, 1] > region[:, 0]):
-            raise ValueError(f"clutter_region: {clutter_region!r} must be [[x_min, x_max], [y_min, y_max]] with min < max")
-        self.clutter_density = float(clutter_rate) / float(np.prod(region[:, 1] - region[:, 0]))
+        self.clutter_density = float(clutter_density)
         self.birth_means, self.birth_std, self.birth_weight = means, std, float(birth_weight)
         self.prune_threshold, self.merge_threshold = float(prune_threshold), float(merge_threshold)
         self.max_components, self.extraction_threshold = int(max_components), float(extraction_threshold)

@@ -165,11 +165,17 @@ class CrossingTurns:
     transition F(w, +-dt) (module docstring), so the crossing happens where and when stated
     whatever the turns; ``sigma_v_truth`` > 0 adds white acceleration noise on the way forwards
     from the birth scan (the states then pass near, not exactly through, the crossing point).
+    ``birth_means``, ``birth_std``, ``birth_weight``: a GM-PHD's birth intensity, stated for the trackers'
+    configs as in ``LinearBirthDeath``.
     """
 
     def __init__(self, targets: Sequence[Sequence[float]], turns: Sequence[Sequence[float]] = (),
                  scans: int = 100, dt: float = 1.0, sigma_v_truth: float = 0.0,
-                 region: Sequence[Sequence[float]] = ((-2000.0, 2000.0), (-2000.0, 2000.0))) -> None:
+                 region: Sequence[Sequence[float]] = ((-2000.0, 2000.0), (-2000.0, 2000.0)),
+                 birth_means: Sequence[Sequence[float]] = (), birth_std: Sequence[float] = (20.0, 30.0, 20.0, 30.0),
+                 birth_weight: float = 0.03) -> None:
+        self.birth_means = np.asarray(birth_means, dtype=float).reshape(-1, 4) if len(birth_means) else np.zeros((0, 4))
+        self.birth_std, self.birth_weight = np.asarray(birth_std, dtype=float), float(birth_weight)
         table = _targets_table("targets", targets, 7, "x, y, speed, heading_deg, crossing_time, birth_time, death_time")
         if not 1 <= table.shape[0] <= 5:
             raise ValueError(f"targets: {table.shape[0]} targets given; the crossing scenario takes 2 to 5")

@@ -4,7 +4,7 @@ Gaussian observations, P_D, Poisson clutter uniform over the surveillance region
 Each scan: every target that exists is detected with probability ``detection_probability``; a
 detection is z = H x + v, H picking (x, y) of (x, vx, y, vy), v ~ N(0, R) with R =
 noise_std^2 I_2 (Vo & Ma: 10^2 I m^2); the clutter is a Poisson number of points of mean
-``clutter_rate`` per scan, uniform over ``region``. The detections of a scan are put in random
+``clutter_density`` x the region's area per scan (lambda), uniform over ``region``. The detections of a scan are put in random
 order (so a slot says nothing of its origin), filled slots first.
 """
 
@@ -41,20 +41,21 @@ class ClutteredPositions:
     Parameters
     ----------
     detection_probability : P_D in [0, 1] (Vo & Ma: 0.98)
-    clutter_rate : mean clutter points per scan, lambda >= 0 (Vo & Ma: 10 to 66)
+    clutter_density : clutter points per m^2 and scan, >= 0 (Vo & Ma: 12.5e-6, lambda = 50 over the
+        region; the literature's lambda = 10 to 66 is 2.5e-6 to 16.5e-6 here); lambda = ``clutter_rate``
     noise_std : the position noise standard deviation per axis [m] (Vo & Ma: 10)
     region : [[x_min, x_max], [y_min, y_max]] of the clutter [m] (Vo & Ma: [-1000, 1000]^2)
     """
 
     produces = POSITION_SETS          # filters.base.MEASUREMENT_KINDS
 
-    def __init__(self, detection_probability: float = 0.98, clutter_rate: float = 10.0, noise_std: float = 10.0,
+    def __init__(self, detection_probability: float = 0.98, clutter_density: float = 2.5e-6, noise_std: float = 10.0,
                  region: Sequence[Sequence[float]] = ((-1000.0, 1000.0), (-1000.0, 1000.0))) -> None:
         p = non_negative("detection_probability", detection_probability, "(a probability)")
         if p > 1:
             raise ValueError(f"detection_probability: {detection_probability!r} must be a probability in [0, 1]")
         self.detection_probability = p
-        self.clutter_rate = non_negative("clutter_rate", clutter_rate, "points per scan")
+        self.clutter_density = non_negative("clutter_density", clutter_density, "points per m^2 and scan")
         self.noise_std = positive("noise_std", noise_std, "m")
         self.region = _region(region)
 
@@ -63,9 +64,10 @@ class ClutteredPositions:
         return self.noise_std**2 * np.eye(2)
 
     @property
-    def clutter_density(self) -> float:
-        """Clutter intensity per m^2: lambda / area of the region (kappa of Vo & Ma eq 20)."""
-        return self.clutter_rate / float(np.prod(self.region[:, 1] - self.region[:, 0]))
+    def clutter_rate(self) -> float:
+        """lambda, the mean clutter points per scan: the density times the region's area (Vo & Ma eq 20's kappa
+        is the density)."""
+        return self.clutter_density * float(np.prod(self.region[:, 1] - self.region[:, 0]))
 
     def measure(self, truth: Truth, seed: int) -> Detections:
         if tuple(truth.state_names) != STATE_NAMES:
