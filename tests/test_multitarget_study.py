@@ -158,12 +158,33 @@ def test_gospa_scores_the_reported_tracks_against_the_targets_that_exist(vo_vo_t
     assert 0 not in settled and 5 in settled and 19 not in settled and 24 in settled and 74 not in settled
 
 
+def test_position_rmse_is_over_the_gospa_pairs_pooled_over_runs():
+    """Hand-worked: run 0 holds two targets 3 m and 4 m off, run 1 one target 0 m off and a second at
+    200 m (beyond c = 100: missed and false, not a pair). Pooled: sqrt((9 + 16 + 0) / 3). A scan where
+    no run holds a target has no value (not 0)."""
+    from filters.multitarget.metrics import set_distances
+    from pipeline.studies.multitarget.adapter import paired_position_rmse
+    true = np.array([[[[0.0, 0.0], [100.0, 0.0]], [[0.0, 0.0], [100.0, 0.0]]],
+                     [[[0.0, 0.0], [100.0, 0.0]], [[0.0, 0.0], [100.0, 0.0]]]])             # (R=2, K=2, N=2, 2)
+    estimated = np.full((2, 2, 2, 2), np.nan)
+    estimated[0, 0] = [[3.0, 0.0], [100.0, 4.0]]
+    estimated[1, 0] = [[0.0, 0.0], [100.0, 200.0]]
+    d = set_distances(estimated, true, 100.0, 2.0)
+    rmse = paired_position_rmse(estimated, true, d.pairing)
+    np.testing.assert_allclose(rmse.per_step()[0], np.sqrt(25.0 / 3))
+    assert np.isnan(rmse.per_step()[1])
+    np.testing.assert_array_equal(rmse.weights[:, 0], [2.0, 1.0])
+
+
 @pytest.mark.filterwarnings("ignore")
 @pytest.mark.parametrize("kind", ["gnn", "gmphd"])
 def test_stone_soup_trackers_track_two_clean_targets(kind):
     pytest.importorskip("stonesoup")
     from stonesoup.models.measurement.linear import LinearGaussian
-    from stonesoup.models.transition.linear import CombinedLinearGaussianTransitionModel, ConstantVelocity
+    from stonesoup.models.transition.linear import (
+        CombinedLinearGaussianTransitionModel,
+        ConstantVelocity,
+    )
 
     from pipeline.stonesoup.tracker import StoneSoupTracker
     truth = LinearBirthDeath([[-200.0, 10.0, 0.0, 0.0, 1, 30], [200.0, -10.0, 100.0, 0.0, 1, 30]], scans=30).generate(2, 0)

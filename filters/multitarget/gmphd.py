@@ -49,9 +49,20 @@ import numpy as np
 from filters.kalman import LOG_2PI, inverse_and_logdet
 from filters.models import acceleration_input_gain, constant_velocity_transition
 from filters.multitarget.base import POSITION_SETS, DetectionSets, MultiTargetTracker, TrackSets
+from filters.progress import counted
 
 STATE_NAMES = ("x", "vx", "y", "vy")
 VO_MA_BIRTHS = ((0.0, 0.0, 0.0, 0.0), (400.0, 0.0, -600.0, 0.0), (-800.0, 0.0, -200.0, 0.0), (-200.0, 0.0, 800.0, 0.0))
+
+
+def ordered_sum(values: np.ndarray, axis: int) -> np.ndarray:
+    """Sum over the component axis in index order. numpy's pairwise sum groups terms by the
+    axis' length, and a batch pads every run to its widest, so ``ndarray.sum`` gave a run's
+    weights a different rounding in a batch of 14 runs than of 13 (last-bit differences in
+    the cardinality and every table after it). Zeros appended after the last term leave a
+    running sum unchanged, whatever the padding."""
+    return np.cumsum(values, axis=axis).take(-1, axis=axis) if values.shape[axis] else \
+        np.zeros(values.shape[:axis] + values.shape[axis + 1:])
 
 
 def _number(value: object, key: str, low: float = 0.0, high: float = np.inf, closed_low: bool = False) -> float:
@@ -126,7 +137,7 @@ class GMPHD(MultiTargetTracker):
         estimates = []
         cardinality = np.zeros((R, K))
         components = np.zeros((R, K), np.int64)
-        for k in range(K):
+        for k in counted(range(K), "scan", self.name):
             # prediction (Proposition 1) and births
             if k > 0:
                 dt = float(times[k] - times[k - 1])
@@ -154,7 +165,7 @@ class GMPHD(MultiTargetTracker):
             d2 = np.einsum("rjdm,rjmk,rjdk->rjd", nu, S_inv, nu)
             q = np.exp(-0.5 * (d2 + logdet[..., None] + 2 * LOG_2PI))
             numerator = np.where(valid[:, k, None, :], pd * w[..., None] * q, 0.0)
-            w_z = numerator / (self.clutter_density + numerator.sum(axis=1, keepdims=True))
+            w_z = numerator / (self.clutter_density + ordered_sum(numerator, axis=1)[:, None])
             # candidates: slot 0 the missed-detection copy, slots 1..D the updates
             cand_w = np.concatenate([(1.0 - pd) * w[..., None], w_z], axis=2).reshape(R, J * (D + 1))
             keep = cand_w >= self.prune_below
@@ -180,7 +191,7 @@ class GMPHD(MultiTargetTracker):
             w, m, P, label = out_w[:, :width], out_m[:, :width], out_P[:, :width], out_label[:, :width]
             filled = np.arange(width)[None, :] < kept[:, None]
             P = np.where(filled[..., None, None], P, np.eye(4))               # empty slots: harmless values
-            cardinality[:, k] = w.sum(axis=1)
+            cardinality[:, k] = ordered_sum(w, axis=1)
             components[:, k] = kept
             # state extraction (Table III) with labels
             extracted = filled & (w > self.extract_above)

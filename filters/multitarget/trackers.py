@@ -47,6 +47,7 @@ from scipy.stats import chi2
 from filters.multitarget.association import gate, gnn_assign, jpda_weights, likelihood_ratios
 from filters.multitarget.base import POSITION_SETS, DetectionSets, MultiTargetTracker, TrackSets
 from filters.multitarget.motion import ConstantVelocity, InteractingCVTurn
+from filters.progress import counted
 
 
 def _probability(value: object, key: str, open_top: bool = False) -> float:
@@ -144,7 +145,7 @@ class _AssociationTracker(MultiTargetTracker):
         tentative_count = np.zeros((R, K), np.int64)
         events = np.zeros((R, K))
         approximated = np.zeros((R, K), np.int64)
-        for k in range(K):
+        for k in counted(range(K), "scan", self.name):
             zk, vk = z[:, k], valid[:, k]
             if k > 0 and alive.any():
                 state = motion.predict(state, float(times[k] - times[k - 1]))

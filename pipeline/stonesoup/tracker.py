@@ -39,6 +39,7 @@ import numpy as np
 
 from filters.base import usable_processors
 from filters.multitarget import POSITION_SETS, DetectionSets, MultiTargetTracker, TrackSets
+from filters.progress import current
 from pipeline.stonesoup import require_stonesoup
 
 KINDS = ("gnn", "gmphd")
@@ -119,13 +120,21 @@ class StoneSoupTracker(MultiTargetTracker):
         workers = self.workers if self.workers is not None else (
             1 if detections.runs < SERIAL_BELOW else max(1, min(usable_processors(), detections.runs)))
         job = (self, np.asarray(detections.time, dtype=float), np.asarray(detections.noise_covariance, dtype=float))
+        progress, scans, runs = current(), detections.time.shape[0], max(detections.runs, 1)
+        progress.start(scans, "scan", self.name)          # a run done is its share of the scans
         if workers <= 1:
-            results = [_track_run(job, z, count) for z, count in per_run]
+            results = []
+            for z, count in per_run:
+                results.append(_track_run(job, z, count))
+                progress.advance(scans / runs)
         else:
             from joblib import Parallel, delayed
             batches = [b for b in np.array_split(np.arange(len(per_run)), min(len(per_run), workers * 4)) if b.size]
-            parts = Parallel(n_jobs=workers, backend="loky")(
-                delayed(_track_runs)(job, [per_run[i] for i in batch]) for batch in batches)
+            parts = []
+            for part in Parallel(n_jobs=workers, backend="loky", return_as="generator")(
+                    delayed(_track_runs)(job, [per_run[i] for i in batch]) for batch in batches):
+                parts.append(part)
+                progress.advance(scans * len(part) / runs)
             results = [result for part in parts for result in part]
         return _stacked(results, detections, time.perf_counter() - started)
 
