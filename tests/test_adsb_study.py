@@ -22,6 +22,7 @@ def rows(summary: pl.DataFrame, series: str) -> dict[str, float]:
     return dict(zip(chosen["variant_key"].to_list(), chosen["value"].to_list()))
 
 
+@pytest.mark.full
 @pytest.mark.parametrize("experiment", FLIGHTS)
 def test_every_flight_runs_and_the_filters_beat_the_raw_radar(tmp_path, experiment):
     out, ctx = run_in_process(tmp_path, experiment, f"experiment={experiment}", "mc.runs=3", "scenario.duration=120")

@@ -3,11 +3,16 @@ particle filter and ours weigh a cloud alike and agree on the position RMSE with
 
 from __future__ import annotations
 
+import pytest
+
 from tests.extras import require_extra
 
 require_extra("stonesoup", "stonesoup")
 
 from benchmarks import bench_stonesoup_pf  # noqa: E402
+
+# full tier (tests/conftest.py): a benchmark run
+pytestmark = pytest.mark.full
 
 
 def test_the_benchmark_runs_and_its_checks_pass(capsys, tmp_path):

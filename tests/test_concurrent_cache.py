@@ -36,6 +36,9 @@ from pipeline.storage import store
 from pipeline.storage.schemas import META_TABLE, META_VERSION, SCHEMA_VERSION
 from pipeline.storage.store import META_KEY, StageCache, publish
 
+# full tier (tests/conftest.py): jobs at once on one cache
+pytestmark = pytest.mark.full
+
 ROOT = Path(__file__).resolve().parents[1]
 TABLE = "truth"
 META = {META_TABLE: TABLE, META_VERSION: SCHEMA_VERSION}

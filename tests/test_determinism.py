@@ -62,6 +62,7 @@ def sweep(artifacts: Path, *args: str) -> list[Path]:
     return sorted((p for p in where.iterdir() if p.is_dir() and p.name.isdigit()), key=lambda p: int(p.name))
 
 
+@pytest.mark.full
 @pytest.mark.parametrize("experiment, smoke", smoke_experiments())
 def test_a_cached_stage_gives_the_same_tables_as_a_recomputed_one(tmp_path, smoke_runs, experiment, smoke):
     """The session's smoke run (conftest.SmokeRuns: its stages computed and cached), the same job again
@@ -74,6 +75,7 @@ def test_a_cached_stage_gives_the_same_tables_as_a_recomputed_one(tmp_path, smok
     assert_same_tables(fresh, uncached)
 
 
+@pytest.mark.full
 def test_the_launcher_does_not_change_the_tables(tmp_path):
     args = ["experiment=ao_vsimm_s1", "mc.seed=1,2", "mc.runs=3", "scenario.steps=40", "record.enabled=false"]
     basic = sweep(tmp_path / "basic", *args)
@@ -86,6 +88,7 @@ def test_the_launcher_does_not_change_the_tables(tmp_path):
 
 
 
+@pytest.mark.full
 @pytest.mark.parametrize("experiment, smoke", smoke_experiments())
 def test_chunks_of_runs_give_the_same_tables_as_all_runs_at_once(tmp_path, experiment, smoke):
     """14 runs whole, as 13 + 1 and as 9 + 5: batches above and below 8 lanes, the last chunk shorter,

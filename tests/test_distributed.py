@@ -26,7 +26,8 @@ require_extra("distributed", "hydra_plugins.hydra_ray_launcher", "ray")
 from pipeline.results.query import query  # noqa: E402  (after the skip: the module needs nothing of Ray)
 
 ROOT = Path(__file__).resolve().parents[1]
-pytestmark = pytest.mark.distributed
+# full tier (tests/conftest.py): the Ray launcher
+pytestmark = [pytest.mark.distributed, pytest.mark.full]
 
 
 @pytest.fixture

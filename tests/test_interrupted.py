@@ -16,6 +16,9 @@ import pytest
 
 from tests.test_determinism import assert_same_tables
 
+# full tier (tests/conftest.py): jobs killed mid-write
+pytestmark = pytest.mark.full
+
 ROOT = Path(__file__).resolve().parents[1]
 ARGS = ["experiment=mie_los", "mc.runs=4", "variants=[a,b]"]
 

@@ -13,6 +13,9 @@ from pathlib import Path
 
 import pytest
 
+# full tier (tests/conftest.py): peak memory of whole jobs in their own processes
+pytestmark = pytest.mark.full
+
 ROOT = Path(__file__).resolve().parents[1]
 
 SCRIPT = textwrap.dedent("""

@@ -12,6 +12,9 @@ from pathlib import Path
 
 import pytest
 
+# full tier (tests/conftest.py): a fifty-job sweep's memory
+pytestmark = pytest.mark.full
+
 ROOT = Path(__file__).resolve().parents[1]
 JOBS = 50
 

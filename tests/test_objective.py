@@ -55,6 +55,7 @@ def test_the_value_is_the_summary_row_and_nan_is_no_trial_value():
         objective_value(summary, {**objective, "window": "M3 by step 80"})
 
 
+@pytest.mark.full
 def test_a_multirun_with_an_objective_writes_the_best_jobs_config_beside_the_sweep(tmp_path):
     # the basic sweeper: best_config.yaml comes from this project's callback, whatever the sweeper
     proc = cli(tmp_path, "-m", "experiment=ao_vsimm_s2", OBJECTIVE, "variants=[vsimm]", "mc.runs=2",

@@ -162,6 +162,7 @@ def _sweep_summaries(root: Path) -> pl.DataFrame:
                      how="diagonal_relaxed")
 
 
+@pytest.mark.full
 def test_multirun_sweep_yields_one_summary_per_job_with_the_swept_value(tmp_path):
     proc = cli(tmp_path, "-m", "filters.vsimm.t1_mu=0.8,0.85", "mc.runs=3", "scenario.steps=60", "record.enabled=false")
     assert proc.returncode == 0, proc.stderr
@@ -175,6 +176,7 @@ def test_multirun_sweep_yields_one_summary_per_job_with_the_swept_value(tmp_path
     assert (sweep / "sweep_summary.parquet").is_file()
 
 
+@pytest.mark.full
 def test_a_failed_job_is_recorded_and_the_others_stay_queryable(tmp_path):
     proc = cli(tmp_path, "-m", "mc.runs=2,0", "scenario.steps=40", "record.enabled=false",
                "hydra/launcher=joblib", "hydra.launcher.n_jobs=2")
@@ -198,6 +200,7 @@ SHORTENED = ["sonar_*", "sonobuoy_*", "adsb_*"]
 SHORT = ["++scenario.duration=100", "++target_model.particles=100"]
 
 
+@pytest.mark.full
 def test_every_experiment_file_runs_end_to_end(tmp_path):
     """Multiruns over glob(*): every experiment in conf/experiment composes, runs and is queryable."""
     listed = ",".join(SHORTENED)

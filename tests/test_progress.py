@@ -176,6 +176,7 @@ def test_a_real_run_in_a_pipe_prints_log_lines_and_no_bar(tmp_path):
     assert proc.stdout.startswith("sonobuoy_case2: 2 Monte Carlo runs")
 
 
+@pytest.mark.full
 @pytest.mark.parametrize("launcher", ["joblib", "isolated"])
 def test_a_sweeps_lines_and_tables_name_their_job(tmp_path, launcher):
     """Two jobs at once on one terminal: every log line of a job carries "[job N]", and each job's

@@ -328,6 +328,7 @@ def test_a_job_records_its_process(tmp_path):
 
 # ---- item 17: a report on a sweep with a failed job --------------------------------------------------
 
+@pytest.mark.full
 def test_a_report_on_a_sweep_with_a_failed_job_reports_the_others_and_says_why(tmp_path):
     """Item 17: pipeline.results.report wrote job 0, then exited 2 on the failed job and wrote no index.md."""
     from pipeline.results.report import main as report_main

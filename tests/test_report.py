@@ -56,6 +56,7 @@ def test_a_query_that_fails_or_returns_no_row_is_an_error_not_a_pass(small_run):
     assert empty.verdict == "ERROR" and "0 row(s)" in empty.measured
 
 
+@pytest.mark.full
 def test_a_sweep_gets_one_report_per_run_and_an_index(tmp_path):
     sweep = tmp_path / "multirun" / "2026-01-01"          # the layout of a Hydra sweep: <sweep>/<job_num>/
     sweep.mkdir(parents=True)

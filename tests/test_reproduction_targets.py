@@ -36,6 +36,7 @@ def _experiments() -> list[tuple[str, int]]:
 RESAMPLES = 200
 
 
+@pytest.mark.full
 @pytest.mark.slow
 @pytest.mark.parametrize("experiment, runs", _experiments())
 def test_every_untimed_target_holds(tmp_path, experiment, runs):

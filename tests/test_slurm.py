@@ -21,7 +21,8 @@ from tests.extras import require_extra
 require_extra("slurm", "hydra_plugins.hydra_submitit_launcher", "submitit")
 
 ROOT = Path(__file__).resolve().parents[1]
-pytestmark = pytest.mark.slurm
+# full tier (tests/conftest.py): the submitit launcher
+pytestmark = [pytest.mark.slurm, pytest.mark.full]
 
 
 def test_the_slurm_launcher_config_composes_with_overridable_resources():

@@ -220,6 +220,7 @@ def test_the_aggregate_cli_rebuilds_the_sweep_files(real_sweep, tmp_path):
     assert (copy / "sweep.rrd").stat().st_size > 0 and (copy / "sweep_summary.parquet").is_file()
 
 
+@pytest.mark.full
 def test_a_failed_job_is_in_the_index_with_its_error_and_the_report_index_has_the_swept_column(tmp_path):
     from pipeline.results.report import swept_columns
 

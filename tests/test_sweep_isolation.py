@@ -15,6 +15,9 @@ from pathlib import Path
 import polars as pl
 import pytest
 
+# full tier (tests/conftest.py): sweeps across processes, killed jobs
+pytestmark = pytest.mark.full
+
 ROOT = Path(__file__).resolve().parents[1]
 LAUNCHER = "isolated"
 KILLED_JOB = 1            # the one job of three whose filter SIGKILLs its own process

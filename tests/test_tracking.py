@@ -339,6 +339,7 @@ def test_gc_keeps_an_entry_that_a_store_renamed_onto_the_name_after_the_listing(
     assert path.read_bytes() == b"y" * 100 and planned.entries[0].removed is False
 
 
+@pytest.mark.full
 def test_gc_while_a_job_runs_loses_nothing(tmp_path):
     """A job writes its stages while gc --apply runs in a loop: the job ends ok, every table it
     published reads with its checksum, and every cache entry it refers to is there."""

@@ -19,7 +19,8 @@ require_extra("tune", "hydra_plugins.hydra_optuna_sweeper", "optuna")
 from pipeline.launch.objective import BEST_CONFIG  # noqa: E402
 from tests.test_pipeline import cli  # noqa: E402
 
-pytestmark = pytest.mark.tune
+# full tier (tests/conftest.py): the Optuna sweeper
+pytestmark = [pytest.mark.tune, pytest.mark.full]
 TUNE = ["-m", "experiment=ao_vsimm_s2", "tune=vsimm_thresholds", "mc.runs=2"]
 
 
