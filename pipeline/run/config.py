@@ -359,42 +359,93 @@ def _target_nodes(node: Any, key: str) -> typing.Iterator[tuple[str, Any]]:
             yield from _target_nodes(child, f"{key}[{i}]")
 
 
+# The project's contracts (pipeline.contract, filters.base, pipeline.views.tables, pipeline.evaluation.bounds),
+# each told by the hook the runner calls on it: a class that has none of them is no component, whatever
+# package defines it (pipeline.storage.store.TableStream makes a file beside any path it is given).
+CONTRACT_HOOKS = (("track_input", "a study (pipeline.contract.Study)"),
+                  ("run", "a filter or tracker (filters.base.Estimator, filters.multitarget.base.MultiTargetTracker)"),
+                  ("generate", "a scenario (pipeline.contract.Scenario)"),
+                  ("measure", "a sensor (pipeline.contract.Sensor)"),
+                  ("render", "a report table (pipeline.views.tables.ReportTable)"),
+                  ("position_bound", "a bound (pipeline.evaluation.bounds)"),
+                  ("model_index", "a model set (filters.models.AccelerationModelSet)"))
+CONTRACTS = ", ".join(what for _, what in CONTRACT_HOOKS) + ", a Hydra callback (under hydra.callbacks) or a " \
+    "Stone Soup component (a stonesoup.base.Base, or one of its array types)"
+
+
+def implemented_contract(cls: type) -> str | None:
+    """The project contract ``cls`` implements (CONTRACT_HOOKS, a Hydra callback, a Stone Soup
+    component), None for none."""
+    from hydra.experimental.callback import Callback
+
+    for hook, what in CONTRACT_HOOKS:
+        if callable(getattr(cls, hook, None)):
+            return what
+    if issubclass(cls, Callback):
+        return "a Hydra callback"
+    stonesoup_base = any(c.__module__ == "stonesoup.base" and c.__name__ == "Base" for c in cls.__mro__)
+    if stonesoup_base or (cls.__module__.startswith("stonesoup.types.") and issubclass(cls, np.ndarray)):
+        return "a Stone Soup component"
+    return None
+
+
+def check_target(key: str, target: Any, allowed: tuple[str, ...], listed: list[str]) -> type:
+    """The class one ``_target_`` names (``key`` its dotted key), or ConfigError: the name inside
+    ``allowed`` before anything is imported; then the object a class (or a class's constructor
+    method), *defined* inside ``allowed`` (its ``__module__``: a name reached through an allowed
+    module, ``pipeline.run.runner.logging.FileHandler``, is the class of the module it comes from),
+    implementing one of the project's contracts (``implemented_contract``)."""
+    from hydra.utils import get_object      # resolves a dotted name as instantiate() does
+
+    fix = (f"a _target_ must name a class of this project ({', '.join(PROJECT_PACKAGES)}), of Stone Soup's "
+           f"components ({', '.join(COMPONENT_PACKAGES)}) or of a package you list in plugins.packages "
+           f"(now {listed}), e.g. plugins.packages=[mytrack] for _target_: mytrack.cv.MyFilter")
+    if not isinstance(target, str) or not DOTTED_NAME.fullmatch(target):
+        raise ConfigError(f"{key}: {target!r} is not allowed; {fix}.")
+    if not _inside(target, allowed):
+        raise ConfigError(f"{key}: {target!r} is not allowed (nothing was imported); {fix}.")
+    try:
+        obj = get_object(target)
+    except Exception as exc:  # noqa: BLE001 - any import failure: the user's name is wrong
+        top = target.split(".", 1)[0]
+        cause = exc.__cause__ if isinstance(exc.__cause__, ImportError) else exc
+        missing = getattr(cause, "name", None) or ""
+        if isinstance(exc, ImportError) and top in EXTRA_OF_PACKAGE and missing == top:
+            extra = EXTRA_OF_PACKAGE[top]
+            raise ConfigError(f"{key}: {target!r} cannot be imported: {top} is not installed; it comes with the "
+                              f"[{extra}] extra: pip install -e '.[{extra}]'.") from None
+        raise ConfigError(f"{key}: {target!r} cannot be imported ({type(exc).__name__}: "
+                          f"{str(exc).splitlines()[0] if str(exc) else ''}); it must name a class, e.g. "
+                          f"filters.imm.FSIMM.") from None
+    constructor = inspect.ismethod(obj) and inspect.isclass(obj.__self__)
+    if not (inspect.isclass(obj) or constructor):
+        raise ConfigError(f"{key}: {target!r} is a {type(obj).__name__}, not a class; {fix}.")
+    cls = obj.__self__ if constructor else obj
+    defined = f"{cls.__module__}.{cls.__qualname__}"
+    if not _inside(str(cls.__module__), allowed):
+        raise ConfigError(f"{key}: {target!r} is not allowed: it is {defined}, defined outside the allowed packages "
+                          f"and only reached through {target.rsplit('.', 1)[0]}; {fix}, named where it is defined.")
+    if implemented_contract(cls) is None:
+        raise ConfigError(f"{key}: {target!r} is not allowed: {defined} implements none of the project's contracts; "
+                          f"a _target_ must name a component: {CONTRACTS}.")
+    return cls
+
+
 def check_targets(cfg: DictConfig) -> None:
     """Every ``_target_`` names a class (or a class's constructor method, like
     ``AccelerationModelSet.from_config``) of this project (pipeline, filters) or of a package listed in
-    ``plugins.packages``; checked by name *before* anything is imported, then as the imported object.
+    ``plugins.packages``; checked by name *before* anything is imported, then as the imported object:
+    where it is defined and which contract it implements (``check_target``).
 
     instantiate() calls whatever a ``_target_`` names: ``builtins.open`` truncated a file, ``shutil.copyfile``
-    wrote one, and even the type check imported a module (``this``) just to read its signature. A
-    config is data: it may only pick among the components that implement the project's contracts."""
-    from hydra.utils import get_object      # resolves a dotted name as instantiate() does
-
+    wrote one, and even the type check imported a module (``this``) just to read its signature;
+    ``pipeline.runner.logging.FileHandler`` and ``stonesoup.types.array.np.memmap`` passed the name
+    check as modules' attributes. A config is data: it may only pick among the components that
+    implement the project's contracts."""
     allowed = allowed_packages(cfg)
     listed = list(allowed[len(PROJECT_PACKAGES) + len(COMPONENT_PACKAGES):])
     for key, target in _target_nodes(cfg, ""):
-        fix = (f"a _target_ must name a class of this project ({', '.join(PROJECT_PACKAGES)}), of Stone Soup's "
-               f"components ({', '.join(COMPONENT_PACKAGES)}) or of a package you list in plugins.packages "
-               f"(now {listed}), e.g. plugins.packages=[mytrack] for _target_: mytrack.cv.MyFilter")
-        if not isinstance(target, str) or not DOTTED_NAME.fullmatch(target):
-            raise ConfigError(f"{key}: {target!r} is not allowed; {fix}.")
-        if not _inside(target, allowed):
-            raise ConfigError(f"{key}: {target!r} is not allowed (nothing was imported); {fix}.")
-        try:
-            obj = get_object(target)
-        except Exception as exc:  # noqa: BLE001 - any import failure: the user's name is wrong
-            top = target.split(".", 1)[0]
-            cause = exc.__cause__ if isinstance(exc.__cause__, ImportError) else exc
-            missing = getattr(cause, "name", None) or ""
-            if isinstance(exc, ImportError) and top in EXTRA_OF_PACKAGE and missing == top:
-                extra = EXTRA_OF_PACKAGE[top]
-                raise ConfigError(f"{key}: {target!r} cannot be imported: {top} is not installed; it comes with the "
-                                  f"[{extra}] extra: pip install -e '.[{extra}]'.") from None
-            raise ConfigError(f"{key}: {target!r} cannot be imported ({type(exc).__name__}: "
-                              f"{str(exc).splitlines()[0] if str(exc) else ''}); it must name a class, e.g. "
-                              f"filters.imm.FSIMM.") from None
-        constructor = inspect.ismethod(obj) and inspect.isclass(obj.__self__)
-        if not (inspect.isclass(obj) or constructor):
-            raise ConfigError(f"{key}: {target!r} is a {type(obj).__name__}, not a class; {fix}.")
+        check_target(key, target, allowed, listed)
 
 
 def filter_nodes_in_conf() -> dict[str, tuple[Any, DictConfig]]:
