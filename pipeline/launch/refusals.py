@@ -14,6 +14,25 @@ import difflib
 from typing import Any, Sequence
 
 
+# The keys the code reads at the top level ("") and at the nodes of conf/config.yaml whose keys are fixed, in
+# the config's order. A key added there with '+' is read by nothing: pipeline.run.config.check_added_keys
+# refuses it, so a refusal of a key there does not suggest the '+'. Every other node is a ``_target_`` node
+# (its constructor's parameters) or a mapping of entries the user names (filters, metrics.windows, ...).
+FIXED_KEYS: dict[str, tuple[str, ...]] = {
+    "": ("experiment_name", "description", "mc", "uncertainty", "timing", "record", "faults", "cache", "paths",
+         "plugins", "variants", "objective", "paper_runs", "target_test_runs", "targets_tested_in", "smoke",
+         "study", "scenario", "target_model", "sensors", "models", "filters", "bound", "metrics", "report"),
+    "mc": ("runs", "seed", "chunk_runs", "max_memory_gb"),
+    "uncertainty": ("confidence", "bootstrap_resamples"),
+    "timing": ("passes", "budget_s"),
+    "record": ("enabled", "runs"),
+    "faults": ("symmetry_tolerance", "nees_bound"),
+    "cache": ("enabled", "publish"),
+    "paths": ("artifacts",),
+    "plugins": ("packages",),
+}
+
+
 def close_names(name: str, options: Sequence[str], n: int = 3) -> list[str]:
     """Up to ``n`` of ``options`` close to ``name`` (difflib's ratio >= 0.6, or the options that contain
     it or that it contains, for a name typed short or long)."""
@@ -56,7 +75,8 @@ def explain(exc: BaseException, argv: Sequence[str]) -> str:
         keys = [str(k) for k in parent.keys()]
         override = _override_naming(argv, str(key)) or f"{key}=..."
         node = f"{where!r}" if where else "the config's top level"
+        add = (f"Its keys are fixed (a '+' key there is read by nothing)" if where in FIXED_KEYS and where
+               else f"To add a new key, write +{override.lstrip('+~')}")
         return (f"{override}: {node} has no key {leaf!r}. {_suggest(close_names(leaf, keys), 'key')} "
-                f"Its keys are: {', '.join(keys)}. To add a new key, write +{override.lstrip('+~')} (Hydra: Could not "
-                f"override '{key}').")
+                f"Its keys are: {', '.join(keys)}. {add} (Hydra: Could not override '{key}').")
     return " ".join(line.strip() for line in str(exc).strip().splitlines() if line.strip())

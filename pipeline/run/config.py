@@ -695,3 +695,82 @@ def flatten(container: Any, prefix: str = "", skip: tuple[str, ...] = ()) -> dic
 def _match(key: str, pattern: str) -> bool:
     parts, pat = key.split("."), pattern.split(".")
     return len(parts) == len(pat) and all(p == "*" or p == k for k, p in zip(parts, pat))
+
+
+
+def _interpolated_names(node: Any) -> str:
+    """Every interpolation text of the unresolved config, joined (``${paths.artifacts}/cache`` ...)."""
+    found: list[str] = []
+
+    def walk(value: Any) -> None:
+        if isinstance(value, dict):
+            for v in value.values():
+                walk(v)
+        elif isinstance(value, list):
+            for v in value:
+                walk(v)
+        elif isinstance(value, str) and "${" in value:
+            found.append(value)
+    walk(OmegaConf.to_container(node, resolve=False) if isinstance(node, (DictConfig, ListConfig)) else node)
+    return "\n".join(found)
+
+
+def _is_config_group(key: str) -> bool:
+    """Whether ``key`` names a config group (conf/<group>/, or one Hydra chose an option of in this job)."""
+    from hydra.core.hydra_config import HydraConfig
+    if HydraConfig.initialized() and key in (HydraConfig.get().runtime.choices or {}):
+        return True
+    return (Path(__file__).resolve().parents[2] / "conf" / key.replace(".", "/")).is_dir()
+
+
+def check_added_keys(cfg: DictConfig, overrides: list[str]) -> None:
+    """Refuse a ``+key=value`` (or ``++key=value``) override that adds a key nothing reads (``+mc.rnus=5``,
+    ``+record.enable=false``: Hydra suggests the '+' for a key it does not know, and the job then ran with
+    the key ignored): one paragraph naming it, the keys read there and the close names, as
+    pipeline.launch.refusals words Hydra's own refusals. Only the top level and the fixed nodes of
+    conf/config.yaml (``FIXED_KEYS``) are checked: a '+' key under a ``_target_`` node is left to
+    ``build`` (a constructor parameter, or refused), one under a mapping of entries the user names
+    (filters, metrics.windows, report.tables ...) to the code that reads that mapping; a top-level key
+    that another value interpolates (``+my_noise=15 sensors.noise_std=${my_noise}``) is read; ``hydra.*``
+    is Hydra's; a group override (``+tune=x``, ``+filter@filters.k=fsimm``) names a config file, not a key."""
+    from pipeline.launch.refusals import FIXED_KEYS, close_names
+    interpolated = None
+    for override in overrides:
+        if not override.startswith("+"):
+            continue
+        key, eq, value = override.lstrip("+").partition("=")
+        key = key.strip()
+        if not eq or "@" in key or key == "hydra" or key.startswith("hydra."):
+            continue
+        head = next((node for node in FIXED_KEYS if node and (key == node or key.startswith(f"{node}."))), None)
+        if head is not None:
+            if key == head:
+                continue                   # ++mc={...} replaces the node: its keys are checked where read
+            parent, leaf = head, key[len(head) + 1:].split(".")[0]      # +mc.sub.x=1 adds mc.sub
+        elif "." not in key:
+            parent, leaf = "", key
+        else:
+            continue                       # under a _target_ node or a user-named mapping
+        if leaf in FIXED_KEYS[parent]:
+            continue
+        if not parent:
+            if _is_config_group(key):
+                continue                   # a config group chosen with '+' (+tune=x): its file, not a key
+            node = OmegaConf.select(cfg, key, default=None)
+            if isinstance(node, DictConfig) and "_target_" in node:
+                continue                   # a whole node added (+bound={_target_: ...}): build checks it
+            interpolated = _interpolated_names(cfg) if interpolated is None else interpolated
+            if re.search(r"\$\{\s*" + re.escape(key) + r"\s*[}.:\[]", interpolated):
+                continue                   # another value reads it
+        keys = list(FIXED_KEYS[parent])
+        close = close_names(leaf, keys)
+        where = f"{parent}." if parent else ""
+        suggest = (f"Did you mean {' or '.join(repr(where + c) for c in close)}? " if close
+                   else "No key read there is close to it. ")
+        example = f" ({where}{close[0]}={value})" if close else ""
+        node_name = repr(parent) if parent else "the config's top level"
+        raise ConfigError(
+            f"{override}: {node_name} has no key {leaf!r} that anything reads, so the job would run with it ignored. "
+            f"{suggest}Its keys are: {', '.join(keys)}. Set one of them without the '+'{example}"
+            + ("; a new top-level key is read only where another value interpolates it (${...})." if not parent
+               else "."))

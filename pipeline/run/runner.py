@@ -28,7 +28,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from pipeline.storage import fingerprint, schemas
 from pipeline.contract import RecordingInputs, Study
-from pipeline.run.config import build, check_objective, compute_reference, flatten, selected_variants, validate
+from pipeline.run.config import build, check_added_keys, check_objective, compute_reference, flatten, selected_variants, validate
 from pipeline.run import provenance as provenance_of_run
 from pipeline.run.environment import environment, table_metadata as environment_metadata
 from pipeline.errors import ConfigError, StorageError
@@ -396,6 +396,7 @@ def run_experiment(cfg: DictConfig, ctx: RunContext) -> RunOutcome:
     """Run every stage of one experiment job; write its tables, recording and status."""
     total_started = time.perf_counter()
     experiment = str(cfg.get("experiment_name"))
+    check_added_keys(cfg, ctx.overrides)      # a '+' key nothing reads (+mc.rnus=5): refused, not ignored
     prepared = prepare(cfg)
     report_tables = prepared.report_tables
     resolved = OmegaConf.to_container(cfg, resolve=True)

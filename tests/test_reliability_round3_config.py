@@ -1,0 +1,110 @@
+"""Issue 37 (reliability, round 3), items 20, 8, 14 and 19: a config the job would misread is refused
+before any work, a stored config edited after its run is not certified, a singular bound is NaN."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from pipeline.errors import ConfigError
+
+
+def _job(tmp_path: Path, name: str, *overrides: str):
+    """(cfg, ctx) of an in-process single run ``runs/<name>`` (record off), as ``python -m pipeline`` makes them."""
+    from pipeline.run.runner import RunContext
+    from tests.test_pipeline import compose_cfg
+    cfg = compose_cfg(f"paths.artifacts={tmp_path}", "record.enabled=false", *overrides)
+    return cfg, RunContext(tmp_path / "runs" / name, tmp_path, list(overrides))
+
+
+# ---- item 20: a '+' key that nothing reads is refused ----------------------------------------------
+
+@pytest.mark.parametrize("override, message", [
+    ("+mc.rnus=5", "+mc.rnus=5: 'mc' has no key 'rnus' that anything reads, so the job would run with it ignored. "
+                   "Did you mean 'mc.runs'? Its keys are: runs, seed, chunk_runs, max_memory_gb. Set one of them "
+                   "without the '+' (mc.runs=5)."),
+    ("+record.enable=false", "+record.enable=false: 'record' has no key 'enable' that anything reads, so the job "
+                             "would run with it ignored. Did you mean 'record.enabled'? Its keys are: enabled, runs. "
+                             "Set one of them without the '+' (record.enabled=false)."),
+    ("++mc.rnus=5", "++mc.rnus=5: 'mc' has no key 'rnus' that anything reads"),
+    ("+uncertainty.confidance=0.9", "Did you mean 'uncertainty.confidence'?"),
+    ("+timing.pases=2", "Did you mean 'timing.passes'?"),
+    ("+mc.sub.x=1", "+mc.sub.x=1: 'mc' has no key 'sub' that anything reads"),
+    ("+sead=3", "+sead=3: the config's top level has no key 'sead' that anything reads"),
+])
+def test_a_plus_key_that_nothing_reads_is_refused_with_the_close_names(tmp_path, override, message):
+    """Item 20: ``+mc.rnus=5`` and ``+record.enable=false`` (Hydra's own suggestion for a typo) ran with
+    the key ignored. Before: the job ran (no ConfigError); after: one paragraph, before any work."""
+    from pipeline.run.runner import run_experiment
+    with pytest.raises(ConfigError) as info:
+        run_experiment(*_job(tmp_path, "bad", "mc.runs=2", override))
+    assert message in str(info.value) and "\n" not in str(info.value)
+    assert not (tmp_path / "cache").exists() and not (tmp_path / "runs").exists()
+
+
+def test_a_plus_key_is_refused_on_the_command_line_with_exit_2(tmp_path):
+    """Item 20 as the user meets it: exit 2, one paragraph, no traceback, no run folder left."""
+    from tests.test_pipeline import cli
+    proc = cli(tmp_path, "+mc.rnus=5", "record.enabled=false")
+    assert proc.returncode == 2, proc.stderr
+    assert "error: +mc.rnus=5: 'mc' has no key 'rnus' that anything reads" in proc.stderr
+    assert "Traceback" not in proc.stderr
+    assert not (tmp_path / "runs").exists() or not any((tmp_path / "runs").rglob("*.parquet"))
+
+
+def _explained(override: str) -> str:
+    """pipeline.launch.refusals' paragraph for Hydra's refusal of ``override``."""
+    from hydra import compose, initialize_config_dir
+    from hydra.errors import HydraException
+
+    from pipeline.launch.refusals import explain
+    from tests.conftest import CONF
+    with initialize_config_dir(version_base="1.3", config_dir=str(CONF)):
+        with pytest.raises(HydraException) as info:
+            compose("config", overrides=[override])
+    return explain(info.value, [override])
+
+
+def test_hydras_refusal_of_a_fixed_node_key_does_not_suggest_the_plus():
+    """The paragraph for ``mc.rnus=5`` (no '+') suggested ``+mc.rnus=5``, the override item 20 refuses;
+    under a ``_target_`` node ('sensors') the '+' adds a constructor parameter and is still suggested."""
+    fixed = _explained("mc.rnus=5")
+    assert "Did you mean 'runs'?" in fixed and "+mc.rnus" not in fixed
+    assert "Its keys are fixed (a '+' key there is read by nothing)" in fixed
+    assert "To add a new key, write +sensors.noise_stdd=5" in _explained("sensors.noise_stdd=5")
+
+
+@pytest.mark.parametrize("override", ["+filters.fsimm.foo=1", "+scenario.foo=1"])
+def test_a_plus_key_under_a_target_node_is_left_to_its_constructor(tmp_path, override):
+    from pipeline.run.runner import run_experiment
+    with pytest.raises(ConfigError, match=r"foo: 1 is not a parameter of"):
+        run_experiment(*_job(tmp_path, "bad", "mc.runs=2", override))
+
+
+def test_plus_keys_that_are_read_still_run(tmp_path):
+    """An interpolated '+' key, a new filter variant from its config group and a key under a user-named
+    mapping are read: they run."""
+    from pipeline.run.runner import run_experiment
+    out = run_experiment(*_job(tmp_path, "ok", "mc.runs=2", "scenario.steps=20", "+my_noise=15",
+                               "sensors.noise_std=${my_noise}", "+filter@filters.extra=fsimm",
+                               "filters.extra.name=FSIMM-2", "+metrics.windows.early=[0,10]"))
+    assert "FSIMM-2" in set(out.summary["variant"]) and "early" in set(out.summary["window"])
+    assert out.summary["sensors.noise_std"].unique().to_list() == [15]
+
+
+def test_the_fixed_keys_are_conf_config_yamls_and_every_experiments_top_level():
+    """FIXED_KEYS must follow conf/config.yaml (a key added there is read, one removed is not), and the
+    top level must hold every top-level key of every experiment."""
+    from omegaconf import OmegaConf
+
+    from pipeline.launch.refusals import FIXED_KEYS
+    from tests.conftest import CONF, composed
+    base = OmegaConf.load(CONF / "config.yaml")
+    for node, keys in FIXED_KEYS.items():
+        if node:
+            assert list(base[node].keys()) == list(keys), node
+    assert set(base.keys()) - {"defaults", "hydra"} <= set(FIXED_KEYS[""])
+    for path in sorted((CONF / "experiment").glob("*.yaml")):
+        cfg = composed(path.stem)
+        assert set(cfg.keys()) - {"hydra"} <= set(FIXED_KEYS[""]), path.stem
