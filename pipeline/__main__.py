@@ -127,9 +127,16 @@ def register_isolated_launcher() -> None:
 def entry() -> None:
     """``python -m pipeline``: Hydra's app, with one exit code (2) for every input error. Hydra exits
     1 when it refuses the command line or the config (an unknown key, a missing experiment) before
-    any callback ran; our own refusals exit 2; a bug keeps Python's 1 with its traceback."""
+    any callback ran; our own refusals exit 2; a bug keeps Python's 1 with its traceback. What the
+    config names for Hydra itself to build is checked first (pipeline.launch.hydra_targets)."""
     from pipeline.launch import folders
+    from pipeline.launch.hydra_targets import check_command
     register_isolated_launcher()
+    try:      # what the config names for Hydra to build (callbacks, launcher, sweeper), before Hydra builds it
+        check_command(sys.argv[1:])
+    except PipelineError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        sys.exit(2)
     # Hydra prints its own text for a command line it refuses (an unknown key, a missing option);
     # asked to raise instead, its refusal becomes our paragraph with the close names
     # (pipeline.launch.refusals). HYDRA_FULL_ERROR=1 set by the user keeps Hydra's full traceback.

@@ -77,3 +77,93 @@ def test_every_target_in_conf_implements_a_contract():
         obj = get_object(target)
         cls = obj.__self__ if inspect.ismethod(obj) else obj
         assert implemented_contract(cls) is not None, target
+
+
+# ---- item 5: what the config names for Hydra itself to build -----------------------------------------
+
+def run_entry(monkeypatch, tmp_path, *args: str) -> int:
+    """``python -m pipeline ARGS`` in this process (its exit code); cwd and artifacts in ``tmp_path``."""
+    import sys
+
+    from pipeline.__main__ import entry
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.delenv("HYDRA_FULL_ERROR", raising=False)
+    monkeypatch.setattr(sys, "argv", ["pipeline", *args, f"paths.artifacts={tmp_path / 'art'}"])
+    with pytest.raises(SystemExit) as info:
+        entry()
+    return info.value.code
+
+
+def evil_callback(victim) -> str:
+    return f"{{_target_: logging.FileHandler, filename: '{victim}', mode: w}}"
+
+
+@pytest.mark.parametrize("sweep", [False, True])
+def test_a_callback_outside_the_allow_list_is_refused_before_hydra_builds_it(tmp_path, monkeypatch, capsys, sweep):
+    """Item 5: '+hydra.callbacks.evil={_target_: logging.FileHandler, filename: F, mode: w}' truncated F
+    (Hydra builds its callbacks before the task function checks anything), in a run and in a sweep."""
+    victim = tmp_path / "victim.txt"
+    victim.write_text("keep")
+    args = ["-m", "mc.seed=1,2"] if sweep else []
+    code = run_entry(monkeypatch, tmp_path, *args, "mc.runs=0", f"+hydra.callbacks.evil={evil_callback(victim)}")
+    assert victim.read_text() == "keep"
+    assert code == 2
+    (line,) = capsys.readouterr().err.strip().splitlines()
+    assert line.startswith("error: hydra.callbacks.evil._target_: 'logging.FileHandler' is not allowed (nothing was "
+                           "imported)") and "plugins.packages" in line
+    assert not (tmp_path / "art").exists()             # before any work: no run or sweep folder
+
+
+def test_a_callback_set_by_an_experiment_file_is_refused(tmp_path):
+    """Item 5: an experiment YAML can set hydra.callbacks too (a callback chain there ran a command)."""
+    from tests.test_pipeline import cli
+    victim = tmp_path / "victim.txt"
+    victim.write_text("keep")
+    (tmp_path / "extra" / "experiment").mkdir(parents=True)
+    (tmp_path / "extra" / "experiment" / "evil.yaml").write_text(
+        "# @package _global_\ndefaults:\n  - ao_vsimm_s1\n  - _self_\nexperiment_name: evil\nhydra:\n  callbacks:\n"
+        f"    evil:\n      _target_: logging.FileHandler\n      filename: '{victim}'\n      mode: w\n")
+    proc = cli(tmp_path, f"--config-dir={tmp_path / 'extra'}", "experiment=evil", "mc.runs=0")
+    assert victim.read_text() == "keep" and proc.returncode == 2
+    (line,) = proc.stderr.strip().splitlines()
+    assert line.startswith("error: hydra.callbacks.evil._target_: 'logging.FileHandler' is not allowed")
+    assert not (tmp_path / "runs").exists()
+
+
+def test_a_callback_must_be_a_hydra_callback_defined_where_allowed():
+    """Item 5: a callback node is checked as every _target_ is (item 6 included), and must be a Callback."""
+    from pipeline.run.config import check_hydra_targets
+
+    def hydra(callbacks=None, **parts):
+        return OmegaConf.create({"plugins": {"packages": []}, "hydra": {"callbacks": callbacks or {}, **parts}})
+
+    check_hydra_targets(hydra({"output_folders": {"_target_": "pipeline.launch.folders.OutputFolders"}}))
+    for node, says in [({"_target_": "pipeline.views.tables.SummaryTable"}, "a callback must be a Hydra callback"),
+                       ({"_target_": "pipeline.run.runner.logging.FileHandler"}, "is logging.FileHandler, defined outside"),
+                       ({"_target_": "pipeline.launch.folders.OutputFolders", "x": {"_target_": "builtins.open"}},
+                        "hydra.callbacks.evil.x._target_: 'builtins.open' is not allowed"),
+                       ("oops", "a callback is a node whose _target_ names a Hydra callback class")]:
+        with pytest.raises(ConfigError, match=re.escape(says)):
+            check_hydra_targets(hydra({"evil": node}))
+    with pytest.raises(ConfigError, match=re.escape("hydra.launcher._target_: 'logging.FileHandler' is not allowed "
+                                                    "(nothing was imported); a launcher must be a Hydra plugin")):
+        check_hydra_targets(hydra(launcher={"_target_": "logging.FileHandler", "filename": "x"}))
+    with pytest.raises(ConfigError, match=re.escape("hydra.sweeper.sampler._target_: 'logging.FileHandler' is not "
+                                                    "allowed (nothing was imported)")):
+        check_hydra_targets(hydra(sweeper={"_target_": "hydra_plugins.hydra_optuna_sweeper.optuna_sweeper.OptunaSweeper",
+                                           "sampler": {"_target_": "logging.FileHandler"}}))
+
+
+@pytest.mark.parametrize("args", [["mc.runs=2"], ["-m", "mc.seed=1,2", "hydra/launcher=isolated"],
+                                  ["-m", "hydra/launcher=slurm"], ["-m", "hydra/launcher=ray_local"],
+                                  ["-m", "experiment=ao_vsimm_s2", "tune=vsimm_thresholds"]])
+def test_the_shipped_callbacks_launchers_and_sweepers_pass(args):
+    """The check composes the config as Hydra will and keeps what the project ships."""
+    from pipeline.__main__ import register_isolated_launcher
+    from pipeline.launch.hydra_targets import check_command, composed
+    if "tune=vsimm_thresholds" in args:
+        pytest.importorskip("optuna")
+    register_isolated_launcher()
+    cfg = composed(args)
+    assert cfg is not None and "output_folders" in cfg.hydra.callbacks
+    check_command(args)

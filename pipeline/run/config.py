@@ -448,6 +448,72 @@ def check_targets(cfg: DictConfig) -> None:
         check_target(key, target, allowed, listed)
 
 
+# What a sweep's launcher and sweeper nodes may name: Hydra builds a launcher or sweeper only from a plugin
+# class it registered (hydra_plugins, its core plugins), and the nodes nested in one with it (instantiate is
+# recursive): Optuna's sampler (conf/tune/) is the only such node this project's configs have.
+HYDRA_PLUGIN_PACKAGES = ("hydra_plugins", "hydra._internal.core_plugins")
+SWEEPER_COMPONENT_PACKAGES = ("optuna.samplers",)
+
+
+def check_hydra_targets(cfg: DictConfig) -> None:
+    """What Hydra itself builds from ``cfg.hydra`` before any job runs, checked as every other
+    ``_target_`` is (``check_target``): each ``hydra.callbacks`` node a Hydra callback
+    (``hydra.experimental.callback.Callback``) defined in this project or a package listed in
+    ``plugins.packages``, the nodes nested in it components; ``hydra.launcher._target_`` and
+    ``hydra.sweeper._target_`` a name under HYDRA_PLUGIN_PACKAGES (Hydra then takes only a plugin it
+    registered under that name), the nodes nested in them Optuna's samplers.
+
+    Hydra instantiates these when a run or sweep starts, before the task function:
+    ``'+hydra.callbacks.evil={_target_: logging.FileHandler, filename: F, mode: w}'`` truncated F and the
+    job ended 0."""
+    from hydra.experimental.callback import Callback
+    from hydra.utils import get_object
+
+    hydra_node = cfg.get("hydra")
+    if not isinstance(hydra_node, DictConfig):
+        return
+    allowed = allowed_packages(cfg)
+    listed = list(allowed[len(PROJECT_PACKAGES) + len(COMPONENT_PACKAGES):])
+    callbacks = hydra_node.get("callbacks")
+    for name in (callbacks.keys() if isinstance(callbacks, DictConfig) else ()):
+        key, node = f"hydra.callbacks.{name}", callbacks.get(name)
+        if node is None:
+            continue
+        if not isinstance(node, DictConfig) or "_target_" not in node:
+            raise ConfigError(f"{key}: {node!r} is not allowed; a callback is a node whose _target_ names a Hydra "
+                              f"callback class (e.g. {{_target_: pipeline.launch.folders.OutputFolders}}).")
+        for nested_key, target in _target_nodes(node, key):
+            cls = check_target(nested_key, target, allowed, listed)
+            if nested_key == f"{key}._target_" and not issubclass(cls, Callback):
+                raise ConfigError(f"{nested_key}: {target!r} is not allowed: a callback must be a Hydra callback "
+                                  f"(a subclass of hydra.experimental.callback.Callback) of this project "
+                                  f"({', '.join(PROJECT_PACKAGES)}) or of a package you list in plugins.packages "
+                                  f"(now {listed}).")
+    for part in ("launcher", "sweeper"):
+        node = hydra_node.get(part)
+        for key, target in _target_nodes(node, f"hydra.{part}") if isinstance(node, DictConfig) else ():
+            if key == f"hydra.{part}._target_":
+                if not (isinstance(target, str) and DOTTED_NAME.fullmatch(target) and _inside(target, HYDRA_PLUGIN_PACKAGES)):
+                    raise ConfigError(f"{key}: {target!r} is not allowed (nothing was imported); a {part} must be a "
+                                      f"Hydra plugin, a class under {' or '.join(HYDRA_PLUGIN_PACKAGES)}: choose one "
+                                      f"with hydra/{part}=NAME (e.g. hydra/launcher=isolated, tune=<file in conf/tune>).")
+                continue
+            if not (isinstance(target, str) and DOTTED_NAME.fullmatch(target)
+                    and _inside(target, SWEEPER_COMPONENT_PACKAGES)):
+                raise ConfigError(f"{key}: {target!r} is not allowed (nothing was imported); a node inside "
+                                  f"hydra.{part} may name only a class of {', '.join(SWEEPER_COMPONENT_PACKAGES)} "
+                                  f"(the Optuna sweeper's sampler, e.g. optuna.samplers.TPESampler).")
+            try:
+                obj = get_object(target)
+            except Exception as exc:  # noqa: BLE001 - any import failure: the user's name is wrong
+                raise ConfigError(f"{key}: {target!r} cannot be imported ({type(exc).__name__}); it must name a "
+                                  f"sampler class, e.g. optuna.samplers.TPESampler (the [tune] extra).") from None
+            if not inspect.isclass(obj) or not _inside(str(obj.__module__), SWEEPER_COMPONENT_PACKAGES):
+                where = f"{obj.__module__}.{obj.__qualname__}" if inspect.isclass(obj) else f"a {type(obj).__name__}"
+                raise ConfigError(f"{key}: {target!r} is not allowed: it is {where}, not a class defined in "
+                                  f"{', '.join(SWEEPER_COMPONENT_PACKAGES)} (e.g. optuna.samplers.TPESampler).")
+
+
 def filter_nodes_in_conf() -> dict[str, tuple[Any, DictConfig]]:
     """conf/filter/<name>.yaml -> (the class its ``_target_`` names, its node), following a file's defaults."""
     from hydra.utils import get_object
