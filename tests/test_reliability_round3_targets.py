@@ -167,3 +167,85 @@ def test_the_shipped_callbacks_launchers_and_sweepers_pass(args):
     cfg = composed(args)
     assert cfg is not None and "output_folders" in cfg.hydra.callbacks
     check_command(args)
+
+
+# ---- item 7: a stored run folder is input --------------------------------------------------------------
+
+class MarkingTable:
+    """A report table whose building leaves a mark: a class of a package the stored config lists."""
+
+    def __init__(self, marker: str) -> None:
+        from pathlib import Path
+        Path(marker).write_text("built")
+
+    def render(self, ctx) -> str:
+        return ""
+
+
+def stored_run(tmp_path, *, packages, tables, **values):
+    """A run folder as python -m pipeline leaves one (config.yaml resolved, status ok), holding only
+    what the checks before any stage read: the config the user may have edited, or got from elsewhere."""
+    import json
+
+    from tests.conftest import composed_config
+    from omegaconf import open_dict
+    cfg = composed_config(f"paths.artifacts={tmp_path}", "mc.runs=2", "record.enabled=false")
+    with open_dict(cfg):
+        cfg.plugins.packages = packages
+        cfg.report.tables = tables
+        for key, value in values.items():
+            OmegaConf.update(cfg, key, value)
+    run = tmp_path / "runs" / "ao_vsimm_s1" / "stored"
+    run.mkdir(parents=True)
+    (run / "config.yaml").write_text(OmegaConf.to_yaml(cfg, resolve=True))
+    (run / "status.json").write_text(json.dumps({"status": "ok", "run_id": "stored"}))
+    return run
+
+
+def test_recompute_builds_nothing_a_stored_config_names_through_its_report_tables(tmp_path, capsys):
+    """Item 7: 'report.tables.evil' in a run folder's config.yaml was built by python -m pipeline.recompute
+    (pipeline.run.runner.logging.FileHandler truncated its file)."""
+    from pipeline.results.recompute import main
+    victim = tmp_path / "victim.txt"
+    victim.write_text("keep")
+    run = stored_run(tmp_path, packages=[], tables={"evil": {"_target_": "pipeline.runner.logging.FileHandler",
+                                                             "filename": str(victim), "mode": "w"}})
+    assert main([str(run)]) == 2
+    assert victim.read_text() == "keep"
+    (line,) = capsys.readouterr().err.strip().splitlines()
+    assert line.startswith("recompute: report.tables.evil._target_: 'pipeline.run.runner.logging.FileHandler' is "
+                           "not allowed: it is logging.FileHandler, defined outside the allowed packages")
+
+
+def test_a_stored_folders_own_plugins_packages_are_not_taken_on_its_word(tmp_path, capsys):
+    """Item 7: a config.yaml listing a package (plugins.packages: [tests]) had any class of it built by
+    python -m pipeline.recompute; now only a package the user names (--plugins) is."""
+    from pipeline.results.recompute import main
+    marker = tmp_path / "built.txt"
+    run = stored_run(tmp_path, packages=["tests"], tables={"mark": {
+        "_target_": "tests.test_reliability_round3_targets.MarkingTable", "marker": str(marker)}})
+    assert main([str(run)]) == 2
+    assert not marker.exists()
+    (line,) = capsys.readouterr().err.strip().splitlines()
+    assert line.startswith(f"recompute: {run / 'config.yaml'}: plugins.packages: ['tests'] is not taken from a stored "
+                           f"run folder") and line.endswith(f"python -m pipeline.recompute {run} --plugins tests.")
+    # named by the user, the package is allowed: the table is built (the folder has no tables to read then)
+    assert main([str(run), "--plugins", "tests"]) == 2
+    assert marker.read_text() == "built" and "truth.parquet" in capsys.readouterr().err
+
+
+def test_rerun_takes_a_stored_folders_plugins_packages_only_from_the_command_line(tmp_path, capsys):
+    """Item 7: python -m pipeline.rerun built the classes of the packages a stored config listed."""
+    from pipeline.results.rerun import main
+    marker = tmp_path / "built.txt"
+    # two variants of one display name: refused once the report tables are built, before any stage
+    run = stored_run(tmp_path, packages=["tests"], tables={"mark": {
+        "_target_": "tests.test_reliability_round3_targets.MarkingTable", "marker": str(marker)}},
+        **{"filters.vsimm.name": "FSIMM"})
+    assert main([str(run)]) == 2
+    assert not marker.exists()
+    err = capsys.readouterr().err
+    assert "plugins.packages: ['tests'] is not taken from a stored run folder" in err
+    assert f"python -m pipeline.rerun {run} plugins.packages=[tests]." in err
+    assert main([str(run), "plugins.packages=[tests]"]) == 2
+    assert marker.read_text() == "built" and "filters.vsimm.name: 'FSIMM' is also the display name" in capsys.readouterr().err

@@ -35,11 +35,12 @@ class RecomputeError(Exception):
     """A folder that is not a finished run."""
 
 
-def recompute(run_dir: Path) -> tuple[pl.DataFrame, pl.DataFrame]:
-    """(metrics, summary) of the stored run, recomputed from its files."""
+def recompute(run_dir: Path, plugins: Sequence[str] = ()) -> tuple[pl.DataFrame, pl.DataFrame]:
+    """(metrics, summary) of the stored run, recomputed from its files; ``plugins`` the packages its
+    ``plugins.packages`` may list (a stored folder is input: pipeline.run.stored.check_stored_packages)."""
     from pipeline.storage.estimates import StoredEstimates
     from pipeline.run.runner import evaluate_stage, prepare
-    from pipeline.run.stored import stored_config
+    from pipeline.run.stored import check_stored_packages, stored_config
     from pipeline.evaluation.faults import fault_summary
     from pipeline.storage.store import read_table
     from pipeline.studies.single_target import flags_from_table
@@ -52,6 +53,7 @@ def recompute(run_dir: Path) -> tuple[pl.DataFrame, pl.DataFrame]:
     if status.get("status") != "ok":
         raise RecomputeError(f"{run_dir}: the run's status is {status.get('status')!r}, not 'ok'; nothing to recompute")
     cfg = stored_config(run_dir)
+    check_stored_packages(cfg, run_dir, plugins, f"python -m pipeline.recompute {run_dir} --plugins {{packages}}")
     prepared = prepare(cfg)
     truth = prepared.study.truth_from_frame(*read_table(run_dir / "truth.parquet"))
     runs, steps = truth.runs, truth.time.size
@@ -90,11 +92,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m pipeline.recompute", description=__doc__.split("\n\n")[0])
     parser.add_argument("run", help="a run folder (artifacts/runs/<experiment>/<time>, or a sweep job's folder)")
     parser.add_argument("--out", help="write the recomputed metrics.parquet and summary.parquet here")
+    parser.add_argument("--plugins", nargs="+", default=[], metavar="PACKAGE",
+                        help="packages the run's plugins.packages lists that you trust to be imported and built "
+                             "(a stored folder's own list is not taken on its word)")
     args = parser.parse_args(argv)
     from pipeline.errors import PipelineError
     from pipeline.storage.store import TableDamaged
     try:
-        metrics, summary = recompute(Path(args.run))
+        metrics, summary = recompute(Path(args.run), args.plugins)
     except (RecomputeError, PipelineError, FileNotFoundError, TableDamaged) as exc:
         print(f"recompute: {exc}", file=sys.stderr)
         return 2

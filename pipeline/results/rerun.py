@@ -88,6 +88,9 @@ def rerun(run_dir: Path, overrides: Sequence[str], now: dt.datetime | None = Non
                          f"<artifacts>/runs/<experiment>/ (python -m pipeline.query list shows them).")
     status = json.loads(status_path.read_text())
     cfg = stored_config(run_dir)
+    if not any(o.lstrip("+~").startswith("plugins.packages") for o in overrides):   # an override is the user's word
+        from pipeline.run.stored import check_stored_packages
+        check_stored_packages(cfg, run_dir, (), f"python -m pipeline.rerun {run_dir} plugins.packages=[{{packages}}]")
     artifacts = artifacts_of(run_dir, status)
     cfg.paths.artifacts = str(artifacts)
     apply_overrides(cfg, overrides)

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import logging
 from pathlib import Path
-from typing import Any
+from typing import Any, Sequence
 
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
@@ -87,3 +87,31 @@ def stored_config(run_dir: Path) -> DictConfig:
     for key, old, new in upgrade_targets(cfg):
         log.info("%s: %s names %s, which is %s now", Path(run_dir) / "config.yaml", key, old, new)
     return cfg
+
+
+def check_stored_packages(cfg: DictConfig, run_dir: Path, trusted: Sequence[str], how: str) -> None:
+    """Refuse (ConfigError) a stored config whose ``plugins.packages`` lists a package the command did
+    not name itself (``trusted``; ``how`` says how to name them, its ``{packages}`` replaced by those
+    left, e.g. ``--plugins {packages}``).
+
+    A stored run folder is input: its config.yaml can be edited or come from elsewhere, and a package
+    it lists would let any class of that package be built (``plugins.packages: [logging]`` with a
+    ``report.tables`` node of ``logging.FileHandler`` truncated a file under ``python -m
+    pipeline.recompute``). What it may build without a word from the user is what any config may:
+    this project's classes and Stone Soup's components (pipeline.run.config.check_targets)."""
+    from pipeline.errors import ConfigError
+
+    listed = OmegaConf.select(cfg, "plugins.packages", default=None)
+    if listed is None:
+        return
+    names = [str(p) for p in listed] if isinstance(listed, ListConfig) else None
+    untrusted = [p for p in names if p not in set(trusted)] if names is not None else None
+    if untrusted == []:
+        return
+    shown = names if names is not None else listed
+    raise ConfigError(f"{Path(run_dir) / 'config.yaml'}: plugins.packages: {shown!r} is not taken from a stored run "
+                      f"folder: the folder is input, and a package its config lists could have any of its classes "
+                      f"built. Without your word a stored run builds only this project's classes and Stone Soup's "
+                      f"components; if you trust the package(s) {untrusted if untrusted is not None else shown!r} "
+                      f"(your own filters, say), name them: "
+                      f"{how.replace('{packages}', ' '.join(untrusted if untrusted is not None else []))}.")

@@ -67,13 +67,15 @@ class StoneSoupRun:
 
 
 def load_run(run_dir: str | Path, run: int = 0, variants: Sequence[str] | None = None,
-             state_column: str = "x") -> StoneSoupRun:
+             state_column: str = "x", plugins: Sequence[str] = ()) -> StoneSoupRun:
     """One Monte Carlo run of the stored run in ``run_dir`` as Stone Soup ground-truth paths, detections
     with their measurement models, and each variant's tracks (see ``StoneSoupRun``).
 
     ``variants``: the variant keys whose estimates become tracks (default: every estimates/*.parquet);
     ``state_column``: the estimate column read as the track's state (study 002's tables also have
-    ``x_compensated``, the bias-compensated track, with ``P_compensated``).
+    ``x_compensated``, the bias-compensated track, with ``P_compensated``); ``plugins``: the packages
+    the run's ``plugins.packages`` lists that you trust (its sensor is rebuilt from config.yaml, and a
+    stored folder's own list is not taken on its word: pipeline.run.stored.check_stored_packages).
     """
     require_stonesoup()
     from pipeline.storage.store import read_table
@@ -88,7 +90,7 @@ def load_run(run_dir: str | Path, run: int = 0, variants: Sequence[str] | None =
     truths, paths = _truths(truth_df.filter(pl.col("run") == run), state_names)
     det_df, det_meta = read_table(run_dir / "detections.parquet")
     measurement_names = tuple(json.loads(det_meta["mtt.names"])["measurement"])
-    positions = _sensor_positions(run_dir)
+    positions = _sensor_positions(run_dir, plugins)
     scans = _scans(det_df.filter(pl.col("run") == run), measurement_names, state_names, positions, paths)
     available = sorted(p.stem for p in (run_dir / "estimates").glob("*.parquet"))
     keys = list(variants) if variants is not None else available
@@ -120,12 +122,13 @@ def _truths(df: pl.DataFrame, state_names: tuple[str, ...]) -> tuple[set, dict[i
     return set(paths.values()), paths
 
 
-def _sensor_positions(run_dir: Path) -> Any:
+def _sensor_positions(run_dir: Path, plugins: Sequence[str] = ()) -> Any:
     """sensor id -> position (a radar's), from the run's sensor rebuilt from its config.yaml: a network's
     ``positions`` (S, d), a single sensor's ``position``; None where the sensor has none (positions)."""
     from pipeline.run.config import build, check_targets
-    from pipeline.run.stored import stored_config
+    from pipeline.run.stored import check_stored_packages, stored_config
     cfg = stored_config(run_dir)
+    check_stored_packages(cfg, run_dir, plugins, "load_run(..., plugins=[{packages}])")
     check_targets(cfg)                                  # a config is data: only allowed classes are built
     sensor = build(cfg.sensors, "sensors")
     many = getattr(sensor, "positions", None)
