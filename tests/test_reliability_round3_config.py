@@ -108,3 +108,71 @@ def test_the_fixed_keys_are_conf_config_yamls_and_every_experiments_top_level():
     for path in sorted((CONF / "experiment").glob("*.yaml")):
         cfg = composed(path.stem)
         assert set(cfg.keys()) - {"hydra"} <= set(FIXED_KEYS[""]), path.stem
+
+
+# ---- item 8: a run folder stays where it belongs and writes over nothing -----------------------------
+
+@pytest.mark.parametrize("name, why", [
+    ("../../escaped", "a '/' or '..' places the run folder outside paths.artifacts"),
+    ("", "'' leaves the run unlabelled"),
+    ("a/b", "a '/' or '..'"),
+    ("..", "a '/' or '..'"),
+])
+def test_an_experiment_name_that_is_not_a_name_is_refused_in_process(tmp_path, name, why):
+    """Item 8, in process (validate; pipeline.results.rerun and the tests run jobs so). Before: the
+    job ran (runs/'' and runs/../../escaped)."""
+    from omegaconf import OmegaConf
+
+    from pipeline.run.runner import run_experiment
+    cfg, ctx = _job(tmp_path, "bad", "mc.runs=2")
+    OmegaConf.update(cfg, "experiment_name", name)
+    with pytest.raises(ConfigError) as info:
+        run_experiment(cfg, ctx)
+    text = str(info.value)
+    assert text.startswith(f"experiment_name: {name!r} is not allowed ({why}") and "1-64 letters" in text
+    assert not (tmp_path / "runs").exists() and not (tmp_path / "cache").exists()
+
+
+def test_an_experiment_name_that_escapes_or_is_empty_is_refused_before_hydra_makes_a_folder(tmp_path):
+    """Item 8 on the command line: ``experiment_name=../../escaped`` wrote its run folder two levels
+    above paths.artifacts/runs, ``experiment_name=''`` ran unlabelled. Before: exit 0 and the folders;
+    after: exit 2, one paragraph, no folder anywhere."""
+    from tests.test_pipeline import cli
+    artifacts = tmp_path / "a" / "b"
+    for name, folder in (("../../escaped", tmp_path / "a" / "escaped"), ("''", artifacts / "runs")):
+        proc = cli(tmp_path, f"paths.artifacts={artifacts}", f"experiment_name={name}", "mc.runs=2",
+                   "scenario.steps=20", "record.enabled=false")
+        assert proc.returncode == 2, proc.stderr
+        assert "error: experiment_name: " in proc.stderr and "Traceback" not in proc.stderr
+        assert len(proc.stderr.strip().splitlines()) == 1, proc.stderr
+        assert not folder.exists()
+    assert not (tmp_path / "a" / "escaped").exists() and not (artifacts / "cache").exists()
+
+
+def test_a_run_folder_that_holds_another_folders_files_is_refused_and_untouched(tmp_path):
+    """Item 8: ``hydra.run.dir=../..`` wrote its config.yaml (and the rest) over another folder's. Before:
+    exit 0 and config.yaml replaced; after: exit 2 naming the files, every byte there as it was. A new
+    folder and an earlier run's folder (run into again, as after a kill) still run, and what a run writes
+    is RUN_FILES (besides its log)."""
+    from tests.test_pipeline import cli
+    other = tmp_path / "project"
+    (other / "conf").mkdir(parents=True)
+    (other / "config.yaml").write_text("theirs: 1\n")
+    (other / "summary.parquet").write_bytes(b"not ours")
+    (other / "conf" / "x.yaml").write_text("x: 1\n")
+    before = {p: p.read_bytes() for p in other.rglob("*") if p.is_file()}
+    proc = cli(tmp_path, f"hydra.run.dir={other}", "mc.runs=2", "scenario.steps=20")
+    assert proc.returncode == 2, proc.stderr
+    assert (f"error: hydra.run.dir={other}: {other} already holds config.yaml, summary.parquet, which a run writes "
+            f"there, and it is not an earlier run's folder") in proc.stderr
+    assert "Traceback" not in proc.stderr and len(proc.stderr.strip().splitlines()) == 1
+    assert {p: p.read_bytes() for p in other.rglob("*") if p.is_file()} == before
+    assert sorted(p.name for p in other.iterdir()) == ["conf", "config.yaml", "summary.parquet"]
+
+    run = tmp_path / "new" / "run"
+    for _ in range(2):                        # a new folder, then the same folder again: an earlier run's
+        proc = cli(tmp_path, f"hydra.run.dir={run}", "mc.runs=2", "scenario.steps=20")
+        assert proc.returncode == 0, proc.stderr
+    from pipeline.launch.folders import RUN_FILES
+    written = {p.name for p in run.iterdir() if not p.name.endswith(".log")}
+    assert "recording.rrd" in written and written <= RUN_FILES, written - RUN_FILES

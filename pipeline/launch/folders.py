@@ -27,6 +27,11 @@ from pipeline.errors import cannot_write
 
 COMPOSED = False      # set in this process once Hydra has composed the config and called the callbacks
 HYDRA_FILES = (".hydra/config.yaml", ".hydra/hydra.yaml", ".hydra/overrides.yaml")   # what Hydra saves in a job
+# what a single run writes in its folder (besides the job's log): a folder that holds one of these and is not an
+# earlier run's would have it replaced (tests/test_reliability_round3_config.py holds a run's folder to it)
+RUN_FILES = frozenset({".hydra", "config.yaml", "status.json", "truth.parquet", "detections.parquet", "estimates",
+                       "metrics.parquet", "per_run.parquet", "summary.parquet", "comparisons.parquet",
+                       "resamples.parquet", "recording.rrd", "report.txt", "provenance"})
 
 
 @dataclass(frozen=True)
@@ -93,6 +98,38 @@ def remove_what_the_job_made(run_dir: Path, artifacts: Path, before: FolderBefor
                 return
 
 
+def is_run_folder(folder: Path) -> bool:
+    """Whether ``folder`` is an earlier run's: its ``status.json`` is a run's status (a run id and an experiment)."""
+    import json
+    try:
+        status = json.loads((folder / "status.json").read_text())
+    except (OSError, ValueError):
+        return False
+    return isinstance(status, dict) and "run_id" in status and "experiment" in status
+
+
+def check_run_folder(run_dir: Path, value: object) -> None:
+    """``hydra.run.dir`` may be a new or empty folder, or an earlier run's (run into again, as after a
+    kill); a folder that holds what a run writes (``RUN_FILES``: ``config.yaml``, ``summary.parquet`` ...;
+    Hydra's own ``.hydra/`` aside)
+    and is not a run's would have those files replaced: print one paragraph naming them and exit 2,
+    before anything is made (``hydra.run.dir=../..`` wrote its config.yaml over another folder's)."""
+    try:
+        entries = set(os.listdir(run_dir)) if run_dir.is_dir() else set()
+    except OSError:
+        return                                # check_writable names what is wrong with it
+    # .hydra/ alone is Hydra's (any Hydra app's job writes it; a job killed before its status.json leaves it)
+    clashes = sorted(entries & (RUN_FILES - {".hydra"}))
+    if not clashes or is_run_folder(run_dir):
+        return
+    print(f"error: hydra.run.dir={value}: {run_dir} already holds {', '.join(clashes)}, which a run writes there, and "
+          f"it is not an earlier run's folder (no status.json of a run); the run would replace them, so it is refused "
+          f"and nothing was written. Allowed is a new or empty folder, or an earlier run's folder to run into again "
+          f"(e.g. hydra.run.dir={Path(str(value)) / 'run1'}); without hydra.run.dir each run gets its own, "
+          f"runs/<experiment_name>/<time> under paths.artifacts.", file=sys.stderr)
+    sys.exit(2)
+
+
 def check_writable(folder: Path, key: str, value: object) -> None:
     """Create ``folder`` (and its parents) and write a probe file in it; on an OSError print one
     paragraph naming ``key=value`` and exit 2."""
@@ -123,6 +160,13 @@ def check_experiment(config: DictConfig) -> None:
     elif OmegaConf.is_missing(config, "experiment_name"):
         problem = "does not set experiment_name"
     else:
+        from pipeline.errors import ConfigError
+        from pipeline.run.config import check_experiment_name
+        try:
+            check_experiment_name(config.get("experiment_name"))     # it names the run folder, made next
+        except ConfigError as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            sys.exit(2)
         return
     print(f"error: {where} {problem}; an experiment file is a mapping of config keys whose first line is "
           f"'# @package _global_' and which sets experiment_name (see conf/experiment/ao_vsimm_s1.yaml).",
@@ -144,7 +188,9 @@ class OutputFolders(Callback):
         global BEFORE
         check_experiment(config)      # before hydra.run.dir, which interpolates experiment_name, is read
         # before anything is made (check_writable makes the run folder's parent): what was there
-        BEFORE = folder_before(Path(str(config.hydra.runtime.cwd)) / str(config.hydra.run.dir))
+        run_dir = Path(str(config.hydra.runtime.cwd)) / str(config.hydra.run.dir)
+        BEFORE = folder_before(run_dir)
+        check_run_folder(Path(os.path.abspath(run_dir)), config.hydra.run.dir)
         self._check(config, str(config.hydra.run.dir))
 
     def on_multirun_start(self, config: DictConfig, **kwargs) -> None:

@@ -46,6 +46,20 @@ def check_variant_keys(keys: list[str]) -> None:
                           f"may be any text.")
 
 
+def check_experiment_name(name: object) -> None:
+    """``experiment_name`` names the run folder (``runs/<experiment_name>/<time>`` under paths.artifacts)
+    and labels every table: the same characters as a variant key. ``''`` ran unlabelled, and
+    ``../../escaped`` wrote outside paths.artifacts."""
+    if isinstance(name, str) and SAFE_KEY.fullmatch(name):
+        return
+    why = ("'' leaves the run unlabelled" if name == "" else
+           "a '/' or '..' places the run folder outside paths.artifacts" if isinstance(name, str) and
+           ("/" in name or "\\" in name or ".." in name) else "it is not such a name")
+    raise ConfigError(f"experiment_name: {name!r} is not allowed ({why}). It names the run folder "
+                      f"(runs/<experiment_name>/<time> under paths.artifacts) and labels every table, so it must be "
+                      f"1-64 letters, digits, '_' or '-', starting with a letter or digit (e.g. experiment_name=my_study).")
+
+
 def selected_variants(cfg: DictConfig) -> list[str]:
     available = list(cfg.filters.keys()) if cfg.get("filters") else []
     check_variant_keys(available)
@@ -90,6 +104,8 @@ def check_uncertainty(cfg: DictConfig) -> None:
 
 def validate(cfg: DictConfig) -> None:
     """Reject bad values before any stage runs."""
+    if not OmegaConf.is_missing(cfg, "experiment_name"):
+        check_experiment_name(cfg.get("experiment_name"))
     check_targets(cfg)             # before anything imports a _target_ (the kind and type checks do)
     if cfg.get("filters") and cfg.get("sensors") is not None:
         check_measurement_kinds(cfg, selected_variants(cfg))
