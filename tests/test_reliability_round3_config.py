@@ -176,3 +176,38 @@ def test_a_run_folder_that_holds_another_folders_files_is_refused_and_untouched(
     from pipeline.launch.folders import RUN_FILES
     written = {p.name for p in run.iterdir() if not p.name.endswith(".log")}
     assert "recording.rrd" in written and written <= RUN_FILES, written - RUN_FILES
+
+
+# ---- item 14: recompute holds config.yaml to the hash the run recorded ------------------------------
+
+def test_recompute_refuses_a_config_edited_after_the_run(smoke_runs, tmp_path, capsys):
+    """Item 14: a run folder whose config.yaml was edited after the run (here its description, a
+    value the recomputed metrics do not read) was certified "equal to
+    the stored table bit for bit". Before: exit 0 and that line; after: exit 2 naming both hashes, nothing
+    recomputed. The folder as the run wrote it says its hash is the one recorded."""
+    import json
+    import shutil
+
+    from omegaconf import OmegaConf
+
+    from pipeline.results.recompute import main
+    _, ctx = smoke_runs("ao_vsimm_s1")
+    run = tmp_path / "run"
+    shutil.copytree(ctx.run_dir, run)
+    recorded = json.loads((run / "status.json").read_text())["config_hash"]
+    as_written = (run / "config.yaml").read_bytes()
+    edited = OmegaConf.load(run / "config.yaml")
+    edited.description = f"{edited.description} (edited)"
+    OmegaConf.save(edited, run / "config.yaml")
+    assert main([str(run)]) == 2
+    captured = capsys.readouterr()
+    assert "bit for bit" not in captured.out
+    assert "config.yaml: edited after the run: its config hash is " in captured.err
+    assert f"but the run recorded {recorded} (status.json's config_hash)" in captured.err
+    assert "nothing was recomputed" in captured.err and len(captured.err.strip().splitlines()) == 1
+
+    (run / "config.yaml").write_bytes(as_written)
+    assert main([str(run)]) == 0
+    out = capsys.readouterr().out
+    assert f"config.yaml: config hash {recorded}, the one the run recorded (status.json's config_hash)" in out
+    assert out.count("equal to the stored table bit for bit") == 2

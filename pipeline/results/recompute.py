@@ -9,6 +9,11 @@ summary are compared with the stored ``metrics.parquet`` and ``summary.parquet``
 not a finished run. ``--out DIR`` also writes the recomputed tables there (e.g. after a change of
 the metric code, to compare old and new readings of the same estimates).
 
+First the config: ``config.yaml``'s hash must be the one the run recorded (``status.json``'s
+``config_hash``, else the summary's ``mtt.config_hash``), or the folder is refused (exit 2): a
+config edited after the run would have its metrics "recomputed" with values the run never ran with,
+and a match would certify nothing. Moved class names (pipeline.run.stored) are the same config.
+
 What the metrics need from the sensor (true biases, active periods, noise levels) are its
 configured values, rebuilt from ``config.yaml``; the random parts of a run are all in the tables.
 """
@@ -35,9 +40,45 @@ class RecomputeError(Exception):
     """A folder that is not a finished run."""
 
 
-def recompute(run_dir: Path, plugins: Sequence[str] = ()) -> tuple[pl.DataFrame, pl.DataFrame]:
+def config_hash_check(run_dir: Path, status: dict, cfg) -> str:
+    """One line saying that ``run_dir/config.yaml`` is the config the run recorded (its hash, as
+    ``pipeline.run.runner`` computes it, equals ``status.json``'s ``config_hash``, or the summary's
+    ``mtt.config_hash`` where status.json has none), or that no hash was recorded; RecomputeError when
+    it differs (the file was edited after the run). ``cfg`` is the file with moved class names mapped
+    (pipeline.run.stored): a stored run of before the moves matches as written, the same file mapped
+    matches too."""
+    from omegaconf import OmegaConf
+
+    from pipeline.storage.run_tables import META_CONFIG_HASH
+    from pipeline.storage.store import stable_hash
+    path = run_dir / "config.yaml"
+    recorded, where = str(status.get("config_hash") or ""), "status.json's config_hash"
+    if not recorded:
+        try:
+            meta = pl.read_parquet_metadata(run_dir / "summary.parquet")
+        except (OSError, pl.exceptions.PolarsError):
+            meta = {}
+        recorded, where = str(meta.get(META_CONFIG_HASH) or ""), f"summary.parquet's {META_CONFIG_HASH}"
+    if not recorded:
+        return (f"config.yaml: the run recorded no config hash (status.json config_hash), so whether the file "
+                f"was edited since cannot be told; the comparison below is with the config as it is now")
+    written = stable_hash(OmegaConf.to_container(OmegaConf.load(path), resolve=False))
+    mapped = stable_hash(OmegaConf.to_container(cfg, resolve=False))
+    if recorded not in (written, mapped):
+        raise RecomputeError(
+            f"{path}: edited after the run: its config hash is {written}, but the run recorded {recorded} "
+            f"({where}). The stored tables were computed with another config, so recomputing them from this "
+            f"one would certify nothing; nothing was recomputed. Restore the config.yaml the run wrote, or run "
+            f"the edited config as a new run (python -m pipeline.rerun {run_dir}).")
+    return f"config.yaml: config hash {recorded}, the one the run recorded ({where}): not edited since"
+
+
+def recompute(run_dir: Path, plugins: Sequence[str] = (), said: list[str] | None = None
+              ) -> tuple[pl.DataFrame, pl.DataFrame]:
     """(metrics, summary) of the stored run, recomputed from its files; ``plugins`` the packages its
-    ``plugins.packages`` may list (a stored folder is input: pipeline.run.stored.check_stored_packages)."""
+    ``plugins.packages`` may list (a stored folder is input: pipeline.run.stored.check_stored_packages).
+    First its config.yaml is held to the hash the run recorded (``config_hash_check``; its line is
+    appended to ``said``)."""
     from pipeline.storage.estimates import StoredEstimates
     from pipeline.run.runner import evaluate_stage, prepare
     from pipeline.run.stored import check_stored_packages, stored_config
@@ -53,6 +94,9 @@ def recompute(run_dir: Path, plugins: Sequence[str] = ()) -> tuple[pl.DataFrame,
     if status.get("status") != "ok":
         raise RecomputeError(f"{run_dir}: the run's status is {status.get('status')!r}, not 'ok'; nothing to recompute")
     cfg = stored_config(run_dir)
+    line = config_hash_check(run_dir, status, cfg)       # before anything is built from it
+    if said is not None:
+        said.append(line)
     check_stored_packages(cfg, run_dir, plugins, f"python -m pipeline.recompute {run_dir} --plugins {{packages}}")
     prepared = prepare(cfg)
     truth = prepared.study.truth_from_frame(*read_table(run_dir / "truth.parquet"))
@@ -98,11 +142,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     from pipeline.errors import PipelineError
     from pipeline.storage.store import TableDamaged
+    said: list[str] = []
     try:
-        metrics, summary = recompute(Path(args.run), args.plugins)
+        metrics, summary = recompute(Path(args.run), args.plugins, said)
     except (RecomputeError, PipelineError, FileNotFoundError, TableDamaged) as exc:
         print(f"recompute: {exc}", file=sys.stderr)
         return 2
+    for line in said:
+        print(line)
     # the stored tables as written: a damaged one shows here as rows that differ from the recomputed
     stored_metrics = pl.read_parquet(Path(args.run) / "metrics.parquet")
     stored_summary = pl.read_parquet(Path(args.run) / "summary.parquet")
