@@ -211,3 +211,49 @@ def test_recompute_refuses_a_config_edited_after_the_run(smoke_runs, tmp_path, c
     out = capsys.readouterr().out
     assert f"config.yaml: config hash {recorded}, the one the run recorded (status.json's config_hash)" in out
     assert out.count("equal to the stored table bit for bit") == 2
+
+
+# ---- item 19: study 000's bound at a noise-free or near noise-free range ----------------------------
+
+@pytest.mark.parametrize("range_std", ["1e-9", "0"])
+def test_study_000s_bound_is_nan_with_one_warning_at_a_singular_range_noise(tmp_path, caplog, range_std):
+    """Item 19: ``experiment=mie_los sensors.range_std=1e-9`` (or 0, the sensor's noise-free channel)
+    ended the job with ``LinAlgError: Singular matrix`` in the bound's information (the converted
+    covariance R_I inverted). Before: LinAlgError; after: the job writes every table, position_bound and
+    position_bound_model are NaN with one warning each, the other metrics are numbers."""
+    import logging
+
+    import polars as pl
+
+    from pipeline.run.runner import run_experiment
+    with caplog.at_level(logging.WARNING, logger="pipeline"):
+        out = run_experiment(*_job(tmp_path, "run", "experiment=mie_los", "mc.runs=2",
+                                   f"sensors.range_std={range_std}"))
+    singular = [r.getMessage() for r in caplog.records if "PCRLB is singular" in r.getMessage()]
+    assert len(singular) == 1, singular                     # both bounds meet it: said once
+    assert "scan 0" in singular[0] and "position_bound and its ratios are NaN there" in singular[0]
+    summary = out.summary
+    bound = summary.filter(pl.col("series").is_in(["position_bound", "position_bound_model"]))
+    assert bound.height > 0 and bound["value"].is_nan().fill_null(True).all()
+    rmse = summary.filter(pl.col("series") == "position_rmse")["value"]
+    assert rmse.len() > 0 and rmse.is_finite().all()
+
+
+def test_study_000s_bound_is_a_number_at_small_but_regular_range_noise():
+    """The NaN is for a singular R_I only: at range_std=1e-3 m the bound is a number every scan after the
+    first, below its value at the paper's 10 m."""
+    import warnings
+
+    import numpy as np
+    from hydra.utils import instantiate
+
+    from tests.conftest import composed
+    values = {}
+    for std in (1e-3, 10.0):
+        cfg = composed("mie_los", f"sensors.range_std={std}")
+        truth = instantiate(cfg.scenario).generate(2, 1)
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            values[std] = instantiate(cfg.bound).position_bound(truth, instantiate(cfg.sensors))
+        assert np.isnan(values[std][0]) and np.isfinite(values[std][1:]).all()
+    assert (values[1e-3][1:] < values[10.0][1:]).all()
