@@ -131,8 +131,7 @@ def _named_on_the_command_line(config) -> list[str]:
 def _explicitly_asked(item, named: list[str]) -> bool:
     here = str(Path(item.fspath).resolve())
     node = here + "::" + item.nodeid.split("::", 1)[1] if "::" in item.nodeid else here
-    return any(node == n or node.startswith(n + "::") or node.startswith(n.rstrip("/") + "/") or
-               (n.endswith(".py") and here == n) for n in named)
+    return any(node == n or node.startswith(n + "::") or node.startswith(n.rstrip("/") + "/") for n in named)
 
 
 def pytest_collection_modifyitems(config, items):
