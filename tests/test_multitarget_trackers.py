@@ -288,3 +288,70 @@ def test_the_benchmark_writes_its_results(tmp_path):
     rows = record["tables"][0]["rows"]
     assert [r["tracker"] for r in rows] == ["GNN", "JPDA", "IMM-GNN", "IMM-JPDA", "GM-PHD"]
     assert all(r["ours"] > 0 and r["gospa"] > 0 for r in rows)
+
+
+def test_jpda_weights_are_the_posterior_of_two_targets_and_a_clutter_point():
+    """Hand-worked: two tracks (predicted at (0, 0) and (30, 0) m, S = 200 I m^2) and three detections, all in
+    both gates. The event posterior from the generative model itself, each track detected in its gate with
+    P_D P_G and then spread as N(z; zhat, S) / P_G, a Poisson(lambda) number of clutter points uniform over
+    V (their nc! orders), must equal gate -> likelihood_ratios -> jpda_weights (miss = 1 - P_D P_G)."""
+    import math
+
+    from scipy.stats import chi2, multivariate_normal, poisson
+
+    pd, pg, lam, V = 0.9, 0.99, 2.0, 1000.0**2
+    zhat = np.array([[[0.0, 0.0], [30.0, 0.0]]])
+    S = np.broadcast_to(200.0 * np.eye(2), (1, 2, 2, 2)).copy()
+    z = np.array([[[5.0, 0.0], [25.0, 3.0], [15.0, 10.0]]])
+    d2, gated, logdet = association.gate(zhat, S, z, np.ones((1, 3), bool), np.ones((1, 2), bool), chi2.ppf(pg, 2))
+    assert gated.all()
+    g = association.likelihood_ratios(d2, logdet, gated, pd, lam / V)
+    beta, beta0, _ = association.jpda_weights(g, 1.0 - pd * pg, 1e5, 50)
+    want, want0, total = np.zeros((2, 3)), np.zeros(2), 0.0
+    for event in itertools.product([-1, 0, 1, 2], repeat=2):
+        chosen = [i for i in event if i >= 0]
+        if len(chosen) != len(set(chosen)):
+            continue
+        w = 1.0
+        for t, i in enumerate(event):
+            w *= pd * pg * multivariate_normal(zhat[0, t], S[0, t]).pdf(z[0, i]) / pg if i >= 0 else 1.0 - pd * pg
+        clutter = 3 - len(chosen)
+        w *= poisson.pmf(clutter, lam) * math.factorial(clutter) / V**clutter
+        total += w
+        for t, i in enumerate(event):
+            if i >= 0:
+                want[t, i] += w
+            else:
+                want0[t] += w
+    np.testing.assert_allclose(beta[0], want / total, atol=1e-12)
+    np.testing.assert_allclose(beta0[0], want0 / total, atol=1e-12)
+    assert beta[0, 0, 0] > 0.6 and beta[0, 1, 1] > 0.6 and 0.2 < beta[0, 0, 2] < 0.3   # the clutter point shared
+
+
+def test_jpda_soft_updates_confirm_clutter_tracks_that_gnn_does_not():
+    """docs/studies/multitarget.md, why JPDA's GOSPA is above GNN's on the Vo-Vo run: on clutter alone
+    (10 points a scan on the Vo-Vo region, 20 runs x 40 scans), single-point starts with a 30 m/s velocity
+    spread (the experiment's) have wide first gates; GNN's hard update on a clutter point shrinks the gate
+    to ~10 m and the track dies, JPDA's soft update (beta < 1, the spread term) keeps it wide, collects more
+    clutter (beta_0 < 1/2: a hit) and confirms it. With 15 m/s (the trackers' default) both confirm few.
+    Measured 2026-12-04: JPDA 75 confirmed clutter tracks at 30 m/s (median position std 36 m when
+    confirmed), GNN 1 (8 m); at 15 m/s JPDA 2, GNN 1."""
+    _, detections = scene(np.zeros((0, 4)), runs=20, scans=40, clutter=10.0, seed=4)
+    kappa = 10.0 / 2000.0**2
+
+    def confirmed_clutter_tracks(tracker):
+        tracks = tracker.run(detections)
+        count, spread = 0, []
+        for r in range(tracks.runs):
+            for t in np.unique(tracks.track_id[r][tracks.confirmed[r]]):
+                k, s = np.nonzero((tracks.track_id[r] == t) & tracks.confirmed[r])
+                count += 1
+                spread.append(np.sqrt(tracks.covariance[r, k[0], s[0], 0, 0]))
+        return count, np.median(spread) if spread else 0.0
+
+    jpda, jpda_spread = confirmed_clutter_tracks(JPDA(clutter_density=kappa, initial_velocity_std=30.0))
+    gnn, gnn_spread = confirmed_clutter_tracks(GNN(clutter_density=kappa, initial_velocity_std=30.0))
+    assert jpda >= 30 and gnn <= 5, (jpda, gnn)
+    assert jpda_spread > 20.0 and gnn_spread < 15.0, (jpda_spread, gnn_spread)
+    jpda15, _ = confirmed_clutter_tracks(JPDA(clutter_density=kappa, initial_velocity_std=15.0))
+    assert jpda15 <= 10, jpda15
