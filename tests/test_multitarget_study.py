@@ -229,3 +229,35 @@ def test_reduced_vo_vo_run_scores_reports_and_records(tmp_path):
     assert "GOSPA" in text and "ours_minus_stone_soup" in text
     assert {t.spec.id: t.verdict for t in report.targets}.keys() == {"gmphd_cardinality_follows_truth", "jpda_at_or_below_gnn"}
     assert not [t for t in report.targets if t.verdict == "ERROR"]
+
+
+@pytest.mark.filterwarnings("ignore")
+def test_reduced_crossing_run_evaluates_its_targets_and_the_docs_tables(tmp_path):
+    """A reduced crossing run (2 runs of the 100 scans, four trackers, no Stone Soup) gives every report
+    target and finding a verdict or a value (not their verdict: that needs the paper's 100 runs), and
+    tools/multitarget_tables.py, which made docs/studies/multitarget.md's tables, reads every variant and
+    the IMM-minus-CV pairs from its summary."""
+    from pipeline.results.report import write_reports
+    from tests.test_pipeline import run_in_process
+    from tools.multitarget_tables import main, tables
+    _, ctx = run_in_process(tmp_path, "multitarget_crossing", "experiment=multitarget_crossing", "mc.runs=2",
+                            "variants=[gnn,jpda,imm_gnn,imm_jpda]")
+    (report,), _ = write_reports(ctx.run_dir, tmp_path / "report")
+    verdicts = {t.spec.id: t.verdict for t in report.targets}
+    assert verdicts.keys() == {"imm_gnn_ahead_of_gnn", "imm_jpda_ahead_of_jpda"}
+    assert set(verdicts.values()) <= {"PASS", "FAIL", "INCONCLUSIVE"}, verdicts
+    text = tables(ctx.run_dir)
+    for name in ("GNN", "JPDA", "IMM-GNN", "IMM-JPDA"):
+        assert f"\n| {name} | " in text
+    assert "| IMM-GNN | minus gnn | " in text and "| IMM-JPDA | minus jpda | " in text
+    assert main([str(tmp_path / "no_such_run")]) == 2
+
+
+def test_the_readme_links_the_study_page_and_the_page_its_experiments():
+    from tests.conftest import ROOT
+    page = ROOT / "docs" / "studies" / "multitarget.md"
+    assert "docs/studies/multitarget.md" in (ROOT / "README.md").read_text()
+    text = page.read_text()
+    for command in ("experiment=multitarget_vo_vo mc.runs=100", "experiment=multitarget_crossing mc.runs=100",
+                    "python -m pipeline.report", "tools/multitarget_tables.py"):
+        assert command in text, command
