@@ -15,9 +15,9 @@ runner (pipeline.run.runner) calls exactly these hooks, in this order:
    ``estimate_from_frame(df, metadata)`` reads it back (a cached stage, and later stages, see
    exactly what the table holds).
 4. per variant as soon as its track stage ends, ``per_step_metrics(truth, estimate, sensor)`` and
-   ``variant_summary(...)`` (its own summary rows beyond the per-window means); the estimate is then
+   ``variant_summary(VariantInputs)`` (its own summary rows beyond the per-window means); the estimate is then
    let go (a job holds one at a time: pipeline.storage.estimates). Once every variant is in,
-   ``extra_summary(...)`` for rows across variants. A Monte Carlo metric is returned per run
+   ``extra_summary(JobInputs)`` for rows across variants. A Monte Carlo metric is returned per run
    (``pipeline.evaluation.uncertainty.RunValues``): its value over the runs per step, the summary's interval
    across runs, the paired comparisons and the per-run table all come from it; a plain (K,) array
    is a fixed value (a bound, a chi-square band) without an interval. Every metric name is in the
@@ -92,6 +92,33 @@ class RecordingInputs:
                 "record_runs": self.record_runs, "config_text": self.config_text, "description": self.description}
 
 
+@dataclass(frozen=True)
+class VariantInputs:
+    """What ``Study.variant_summary`` gets: one variant's estimate, while it is in memory."""
+
+    truth: "Truth"
+    key: str                                  # the variant's config key (filters.<key>)
+    display: str                              # its display name
+    estimate: Any
+    runs: int
+    sensor: Any
+    metrics: Mapping[str, Any]                # its per_step_metrics
+
+
+@dataclass(frozen=True)
+class JobInputs:
+    """What ``Study.extra_summary`` gets: every variant, after each one's ``variant_summary``."""
+
+    truth: "Truth"
+    estimates: Mapping[str, Any]              # variant key -> estimate, read again from its table when asked
+    #                                           (pipeline.storage.estimates.StoredEstimates: keeps the last one read)
+    display: Mapping[str, str]                # variant key -> display name, in display order
+    runs: int
+    reference: str | None                     # the reference variant's key (metrics.reference_variant), if it ran
+    sensor: Any
+    per_variant: Mapping[str, tuple[str, dict[str, np.ndarray]]]   # key -> (display, per-step values over the runs)
+
+
 class Study(ABC):
     """The hooks of a study (see the module docstring for when each is called).
 
@@ -155,22 +182,19 @@ class Study(ABC):
         """metric name -> ``RunValues`` (R, K): each run's contribution per step and how runs combine
         (rms, mean, sum, median), or a fixed (K,) array over the truth's steps."""
 
-    def variant_summary(self, truth: "Truth", key: str, display: str, estimate: Any, runs: int, sensor: Any,
-                        metrics: Mapping[str, Any]) -> list[dict]:
+    def variant_summary(self, inputs: VariantInputs) -> list[dict]:
         """One variant's summary rows beyond the per-window means (``pipeline.evaluation.evaluate.summary_row``;
         with a ``statistic``, a ``pipeline.evaluation.uncertainty.WindowStatistic``, the row gets its interval and
-        paired comparison), computed while its ``estimate`` is in memory; ``metrics``: its
+        paired comparison), computed while its ``inputs.estimate`` is in memory; ``inputs.metrics``: its
         ``per_step_metrics``. Default none."""
         return []
 
-    def extra_summary(self, truth: "Truth", estimates: Mapping[str, Any], display: Mapping[str, str], runs: int,
-                      reference: str | None, sensor: Any,
-                      per_variant: Mapping[str, tuple[str, dict[str, np.ndarray]]]) -> list[dict]:
-        """Summary rows across variants (e.g. a ratio to the ``reference`` variant), rows as in
-        ``variant_summary``, after every variant's; ``per_variant`` holds each variant's per-step
-        values. ``estimates`` reads each variant's table again when asked and keeps only the last one
-        read (``pipeline.storage.estimates.StoredEstimates``): go through them once, or keep what these rows
-        need from ``variant_summary`` instead of reading them again. Default none."""
+    def extra_summary(self, inputs: JobInputs) -> list[dict]:
+        """Summary rows across variants (e.g. a ratio to the ``inputs.reference`` variant), rows as in
+        ``variant_summary``, after every variant's; ``inputs.per_variant`` holds each variant's per-step
+        values. ``inputs.estimates`` reads each variant's table again when asked and keeps only the last
+        one read (``pipeline.storage.estimates.StoredEstimates``): go through them once, or keep what these
+        rows need from ``variant_summary`` instead of reading them again. Default none."""
         return []
 
     @abstractmethod

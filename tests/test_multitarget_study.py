@@ -149,8 +149,9 @@ def test_gospa_scores_the_reported_tracks_against_the_targets_that_exist(vo_vo_t
     np.testing.assert_allclose(lost["gospa"].values[:, 50:], np.sqrt(100.0**2 / 2))      # one missed: c^p / 2
     np.testing.assert_allclose(lost["gospa_missed"].values[:, 50:], 5000.0)
     assert np.all(lost["cardinality_error"].values[:, 50:] == -1)
-    rows = {r["series"]: r for r in study.variant_summary(vo_vo_truth, "x", "X", _as_tracks(vo_vo_truth, keep), 3,
-                                                          None, lost)}
+    from pipeline.contract import VariantInputs
+    inputs = VariantInputs(vo_vo_truth, "x", "X", _as_tracks(vo_vo_truth, keep), 3, None, lost)
+    rows = {r["series"]: r for r in study.variant_summary(inputs)}
     assert rows["cardinality_shortfall_settled"]["value"] == 1.0 and rows["cardinality_excess_settled"]["value"] == 0.0
     assert rows["track_purity"]["value"] == 1.0 and rows["false_tracks"]["value"] == 0.0
     # the settled scans leave out settle_scans after each change of the true number (k = 1, 20, 40, 60, 71, 80)

@@ -27,7 +27,7 @@ from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
 from pipeline.storage import fingerprint, schemas
-from pipeline.contract import RecordingInputs, Study
+from pipeline.contract import JobInputs, RecordingInputs, Study, VariantInputs
 from pipeline.run.config import build, check_added_keys, check_objective, compute_reference, flatten, selected_variants, validate
 from pipeline.run import provenance as provenance_of_run
 from pipeline.run.environment import environment, table_metadata as environment_metadata
@@ -655,7 +655,8 @@ class Evaluation:
             own = variant_rows(key, display, metrics, float(estimate.compute_seconds), self.windows, self.runs,
                                self.reached, self.count_windows, fraction)
             studied = [row if "statistic" in row else row | {"statistic": None} for row in
-                       self.study.variant_summary(self.truth, key, display, estimate, self.runs, self.sensor, metrics)]
+                       self.study.variant_summary(VariantInputs(self.truth, key, display, estimate, self.runs,
+                                                                self.sensor, metrics))]
             estimated = [row for row in own + studied if row.get("statistic") is not None]
             for row, reduced in zip(estimated, resample([row["statistic"] for row in estimated], self.seed,
                                                         self.resamples)):
@@ -688,7 +689,8 @@ class Evaluation:
             # the study's rows across variants read the per-step values (over the runs)
             rows += [row for v in variants for row in self.study_rows[v]]
             rows += [row if "statistic" in row else row | {"statistic": None} for row in
-                     self.study.extra_summary(self.truth, estimates, display, runs, ref, self.sensor, self.per_step)]
+                     self.study.extra_summary(JobInputs(self.truth, estimates, display, runs, ref, self.sensor,
+                                                        self.per_step))]
             rows += [summary_row(v, display[v], name, None, float(count), runs) for v in variants
                      for name, count in faults[v].items()]
             summary, comparisons, per_run, resamples = summary_table(rows, ref, self.seed, self.confidence,

@@ -23,10 +23,9 @@ and in the summary, per variant:
 
 from __future__ import annotations
 
-from typing import Any, Mapping
-
 import numpy as np
 
+from pipeline.contract import VariantInputs
 from pipeline.evaluation.bounds import PerTruth
 from pipeline.evaluation.evaluate import consistency, resolved, summary_row
 from pipeline.evaluation.uncertainty import RunValues, WindowStatistic
@@ -105,8 +104,9 @@ class FlightStudy(SingleTargetStudy):
         out.update(consistency("nees_position_velocity", nees(error, covariance), len(index)))
         return out
 
-    def variant_summary(self, truth, key: str, display: str, estimate, runs: int, sensor,
-                        metrics: Mapping[str, Any]) -> list[dict]:
+    def variant_summary(self, inputs: VariantInputs) -> list[dict]:
+        truth, key, display, estimate = inputs.truth, inputs.key, inputs.display, inputs.estimate
+        runs, sensor, metrics = inputs.runs, inputs.sensor, inputs.metrics
         labels = np.asarray(truth.labels["maneuver"])[0, :, 0]
         counted = np.arange(labels.size) >= self.first_scan
         names = truth.state_names

@@ -39,7 +39,7 @@ import numpy as np
 
 from filters.multitarget import DetectionSets, TrackSets
 from filters.multitarget.metrics import set_distances, track_measures
-from pipeline.contract import RecordingInputs, Study
+from pipeline.contract import JobInputs, RecordingInputs, Study, VariantInputs
 from pipeline.data import Detections, Truth
 from pipeline.errors import ConfigError
 from pipeline.evaluation.evaluate import quiet_nanmean, summary_row
@@ -194,8 +194,9 @@ class MultiTargetStudy(Study):
             unsettled[k:k + self.settle_scans] = True
         return np.nonzero(~unsettled)[0]
 
-    def variant_summary(self, truth: Truth, key: str, display: str, estimate: TrackSets, runs: int, sensor: Any,
-                        metrics: Mapping[str, Any]) -> list[dict]:
+    def variant_summary(self, inputs: VariantInputs) -> list[dict]:
+        truth, key, display, estimate = inputs.truth, inputs.key, inputs.display, inputs.estimate
+        runs, sensor, metrics = inputs.runs, inputs.sensor, inputs.metrics
         rows = []
         # per_step_metrics of this same estimate ran just before (the runner's order); else run it again
         if getattr(self, "_measures", (None,))[0] != id(estimate):
@@ -221,8 +222,8 @@ class MultiTargetStudy(Study):
         self._gospa_per_run[key] = np.asarray(metrics["gospa"].values, dtype=float)
         return rows
 
-    def extra_summary(self, truth: Truth, estimates, display: Mapping[str, str], runs: int, reference, sensor,
-                      per_variant) -> list[dict]:
+    def extra_summary(self, inputs: JobInputs) -> list[dict]:
+        truth, display, runs = inputs.truth, inputs.display, inputs.runs
         rows = []
         steps = np.arange(truth.time.size)
         for key, other in self.paired.items():

@@ -21,7 +21,7 @@ import numpy as np
 from filters.bounds import posterior_crlb
 from filters.mgekf import STATE_NAMES, SonarReports, jacobian_rows, relative_motion_model
 from pipeline.storage import schemas
-from pipeline.contract import RecordingInputs, Study
+from pipeline.contract import JobInputs, RecordingInputs, Study, VariantInputs
 from pipeline.evaluation.metrics import Metric, register
 from pipeline.data import Detections, Truth
 from pipeline.errors import ConfigError
@@ -150,10 +150,11 @@ class SonarStudy(Study):
         from pipeline.studies.sonar.recording import write_sonar_recording
         write_sonar_recording(path, sensor=inputs.sensor, **inputs.common(), **inputs.options)
 
-    def variant_summary(self, truth: Truth, key: str, display: str, estimate, runs: int, sensor,
-                        metrics: dict) -> list[dict]:
+    def variant_summary(self, inputs: VariantInputs) -> list[dict]:
         """Table 1's readings of one variant (see the module docstring); keeps its per-run RMSEs and
         squared position errors for ``extra_summary``'s ratios and post-switch peaks."""
+        truth, key, display, estimate = inputs.truth, inputs.key, inputs.display, inputs.estimate
+        runs = inputs.runs
         rows: list[dict] = []
         every_step = np.arange(truth.time.size)
         err = estimate.state[..., :2] - truth.state[:, :, 0, :2]
@@ -170,10 +171,11 @@ class SonarStudy(Study):
                                                     "mean")))
         return rows
 
-    def extra_summary(self, truth: Truth, estimates: dict, display: dict, runs: int, reference: str | None,
-                      sensor, per_variant: dict) -> list[dict]:
+    def extra_summary(self, inputs: JobInputs) -> list[dict]:
         """The paired ratios to the reference and the post-switch peaks, from what ``variant_summary``
         kept of each variant (the estimates are not read again)."""
+        truth, display, runs = inputs.truth, inputs.display, inputs.runs
+        reference, sensor, per_variant = inputs.reference, inputs.sensor, inputs.per_variant
         rows: list[dict] = []
 
         def add(key, metric, window, statistic: WindowStatistic):

@@ -24,7 +24,7 @@ import numpy as np
 
 from filters.particle import MODE_NAMES, NOISE_GAINS, STATE_NAMES, BuoyReports, MultipleModelParticleFilter
 from pipeline.storage import schemas
-from pipeline.contract import RecordingInputs, Study
+from pipeline.contract import RecordingInputs, Study, VariantInputs
 from pipeline.evaluation.metrics import BAND, Metric, nees, register
 from pipeline.data import Detections, Truth
 from pipeline.errors import ConfigError
@@ -204,8 +204,9 @@ class SonobuoyStudy(Study):
         bounds = posterior_crlb(F, Q, np.diag(self.prior_std**2), information)
         return np.sqrt(bounds[:, 0, 0] + bounds[:, 1, 1])
 
-    def variant_summary(self, truth: Truth, key: str, display: str, estimate, runs: int, sensor,
-                        metrics: dict) -> list[dict]:
+    def variant_summary(self, inputs: VariantInputs) -> list[dict]:
+        truth, key, display, estimate = inputs.truth, inputs.key, inputs.display, inputs.estimate
+        runs = inputs.runs
         rows = []
 
         def add(metric, window, statistic: WindowStatistic):
