@@ -35,7 +35,14 @@ def white_jerk_process_noise(dt: np.ndarray, jerk_psd: float) -> np.ndarray:
 
 def smooth_constant_acceleration(time: np.ndarray, position: np.ndarray, noise_std: np.ndarray, jerk_psd: float,
                                  initial_std: tuple[float, float, float] = (1e3, 300.0, 50.0)) -> np.ndarray:
-    """RTS-smoothed (p, v, a) per axis at every time of ``time``.
+    """RTS-smoothed (p, v, a) per axis at every time of ``time`` (``smooth_with_covariance``'s mean)."""
+    return smooth_with_covariance(time, position, noise_std, jerk_psd, initial_std, covariance=False)[0]
+
+
+def smooth_with_covariance(time: np.ndarray, position: np.ndarray, noise_std: np.ndarray, jerk_psd: float,
+                           initial_std: tuple[float, float, float] = (1e3, 300.0, 50.0), covariance: bool = True
+                           ) -> tuple[np.ndarray, np.ndarray | None]:
+    """RTS-smoothed (p, v, a) per axis at every time of ``time``, and its covariance.
 
     Parameters
     ----------
@@ -47,9 +54,13 @@ def smooth_constant_acceleration(time: np.ndarray, position: np.ndarray, noise_s
     jerk_psd : white-jerk power spectral density [m^2/s^5], the same on every axis
     initial_std : prior std of (p, v, a) around (first sample, 0, 0); wide, so the data decide
 
+    covariance : also the smoothed covariance (None when False)
+
     Returns
     -------
-    (N, A, 3) smoothed (p, v, a) per step and axis.
+    (N, A, 3) smoothed (p, v, a) per step and axis; (N, A, 3, 3) its covariance given all samples,
+    P_s[k] = P_f[k] + C_k (P_s[k+1] - P_pred[k+1]) C_k' (Rauch, Tung, Striebel 1965): how well the
+    samples and the model pin the state down (a truth's own uncertainty; it grows between sparse samples).
     """
     time = np.asarray(time, dtype=float)
     position = np.asarray(position, dtype=float)
@@ -88,4 +99,10 @@ def smooth_constant_acceleration(time: np.ndarray, position: np.ndarray, noise_s
     smoothed[-1] = x_filt[-1]
     for k in range(N - 2, -1, -1):
         smoothed[k] = x_filt[k] + (C[k] @ (smoothed[k + 1] - x_pred[k + 1])[..., None])[..., 0]
-    return smoothed
+    if not covariance:
+        return smoothed, None
+    P_smooth = np.empty_like(P_filt)
+    P_smooth[-1] = P_filt[-1]
+    for k in range(N - 2, -1, -1):
+        P_smooth[k] = P_filt[k] + C[k] @ (P_smooth[k + 1] - P_pred[k + 1]) @ np.swapaxes(C[k], -1, -2)
+    return smoothed, 0.5 * (P_smooth + np.swapaxes(P_smooth, -1, -2))

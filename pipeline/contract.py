@@ -52,7 +52,9 @@ class Scenario(Protocol):
 
     A scenario that reads data files (a recorded flight) also offers ``data_fingerprint() -> str``, a
     hash of those files, which joins the scenario stage's cache key (pipeline.run.stages): the config
-    names a file, the fingerprint says which bytes it held."""
+    names a file, the fingerprint says which bytes it held. It may offer ``describe() -> str`` too: one
+    line on what it is (the flight file that ran), which heads report.txt and the report (status.json
+    ``scenario``)."""
 
     def generate(self, runs: int, seed: int) -> "Truth": ...
 

@@ -66,15 +66,21 @@ class Radar3D:
     position : radar position [m] in the truth's inertial frame
     range_std, azimuth_std, elevation_std : noise standard deviations [m, rad, rad]
     sensor_id : the value of ``Detections.sensor`` at every scan
+    max_range : the farthest range it sees [m]; None: no limit. This sensor never misses, so a
+        target beyond it is a wrong geometry (a radar on another continent), refused by ``check_range``
+        and by ``measure``, not a miss
     """
 
     produces = "range_azimuth_elevation"          # filters.base.MEASUREMENT_KINDS
 
     def __init__(self, position: Sequence[float] = (0.0, 0.0, 0.0), range_std: float = 10.0,
                  azimuth_std: float = float(np.sqrt(4.9e-5)), elevation_std: float = float(np.sqrt(3.6e-5)),
-                 sensor_id: int = 0) -> None:
+                 sensor_id: int = 0, max_range: float | None = None) -> None:
         if len(position) != 3 or not np.all(np.isfinite(np.asarray(position, dtype=float))):
             raise ValueError(f"position: {list(position)} must be a finite [x, y, z] in m")
+        if max_range is not None and (isinstance(max_range, bool) or not np.isfinite(max_range) or max_range <= 0):
+            raise ValueError(f"max_range: {max_range!r} must be a range > 0 m, or null (no limit)")
+        self.max_range = None if max_range is None else float(max_range)
         for key, value, unit in (("range_std", range_std, "m"), ("azimuth_std", azimuth_std, "rad"),
                                  ("elevation_std", elevation_std, "rad")):
             if not (np.isfinite(value) and value >= 0):
@@ -84,12 +90,26 @@ class Radar3D:
         self.noise_covariance = np.diag(self.std**2)
         self.sensor_id = int(sensor_id)
 
+    def check_range(self, xyz: np.ndarray, time: np.ndarray | None = None) -> None:
+        """ValueError naming the farthest scan when a target position ``xyz`` ((K, 3), or (R, K, T, 3) runs x
+        scans x targets) is beyond max_range."""
+        if self.max_range is None:
+            return
+        distance = np.linalg.norm(np.asarray(xyz, dtype=float) - self.position, axis=-1)
+        if np.nanmax(distance) > self.max_range:
+            far = np.unravel_index(int(np.nanargmax(distance)), distance.shape)
+            scan = int(far[0]) if distance.ndim == 1 else int(far[1])
+            when = f"scan {scan}" + (f" (t = {float(time[scan]):g} s)" if time is not None else "")
+            raise ValueError(f"max_range: the target is {float(distance[far]) / 1000:.1f} km from the radar at "
+                             f"{when}, beyond its range of {self.max_range / 1000:g} km")
+
     def measure(self, truth: Truth, seed: int) -> Detections:
         R, K, T, _ = truth.state.shape
         index = [truth.state_names.index(n) for n in ("x", "y", "z")] if "z" in truth.state_names else None
         if index is None:
             raise ValueError(f"truth state_names {list(truth.state_names)} lack 'z'; Radar3D needs a 3-D target "
                              f"(x, y, z)")
+        self.check_range(truth.state[..., index], truth.time)
         noise = np.stack([g.standard_normal((K, T, 3)) for g in run_generators(seed, "measure", R)])
         z = spherical(truth.state[..., index] - self.position) + self.std * noise
         z[..., 1] = wrap_angle(z[..., 1])

@@ -185,8 +185,8 @@ def test_a_gap_splits_segments_and_a_window_over_it_is_refused(tmp_path):
     with pytest.raises(ValueError, match=r"duration: the window \[10, 80\] s spans the gap between 30 s and 70 s"):
         build_flight(str(path), start=10.0, duration=70.0)
     with pytest.raises(ValueError, match=r"start: 50 s is not inside a segment"):
-        build_flight(str(path), start=50.0)
-    assert len(build_flight(str(path), start=70.0).time) == 31           # the whole second segment
+        build_flight(str(path), start=50.0, duration=10.0)
+    assert len(build_flight(str(path), start=70.0, duration=30.0).time) == 31     # the whole second segment
     with pytest.raises(ConfigError, match=r"^scenario: duration: .* spans the gap") as refused:
         build(OmegaConf.create({"_target_": SCENARIO, "flight": str(path), "duration": 70.0}), "scenario")
     assert "\n" not in str(refused.value)

@@ -576,6 +576,8 @@ def write_run_report(run_dir: Path, out_dir: Path | None = None, current: bool =
     lines = [f"# {tables.experiment}: reproduction report", ""]
     if config.get("description"):
         lines += [str(config["description"]).strip(), ""]
+    if status.get("scenario"):         # what ran (a recorded flight's file), not the experiment's default
+        lines += [f"Scenario: {status['scenario']}", ""]
     lines += [f"- run: `{tables.run_dir}` ({status.get('status')}, {status.get('runs')} Monte Carlo runs, seed "
               f"{(config.get('mc') or {}).get('seed')}, config {status.get('config_hash')}, finished "
               f"{status.get('finished_at')})",

@@ -90,14 +90,15 @@ def _now() -> str:
 def write_status(ctx: RunContext, experiment: str, status: str, *, config_hash: str = "", runs: int | None = None,
                  error: str | None = None, started_at: str | None = None, detail: str | None = None,
                  peak_rss_mb: float | None = None, provenance: dict | None = None,
-                 stage_keys: Mapping[str, str] | None = None) -> None:
+                 stage_keys: Mapping[str, str] | None = None, scenario: str | None = None) -> None:
     """``peak_rss_mb``: the job's process's peak memory when another process writes its status (the
     launcher, for a job whose process died); by default this process's. ``stage_keys``: the cache key of
     each stage table the run folder holds, by its name there (``estimates/fsimm.parquet``), for readers
     to check each table against its name (pipeline.storage.run_tables), ``mtt-query diff`` to pair runs
     by and ``mtt-query gc`` to keep; written as the stages finish. ``provenance``
-    (pipeline.run.provenance): which code made the run. Both are kept from the previous status when
-    not given."""
+    (pipeline.run.provenance): which code made the run. ``scenario``: what the scenario that ran says it is
+    (its ``describe()``: a recorded flight's file, window and radar site), for the report's header. All
+    three are kept from the previous status when not given."""
     path = ctx.run_dir / "status.json"
     previous = json.loads(path.read_text()) if path.exists() else {}
     record = {
@@ -116,6 +117,9 @@ def write_status(ctx: RunContext, experiment: str, status: str, *, config_hash: 
         "provenance": provenance if provenance is not None else previous.get("provenance"),
         STAGE_KEYS: dict(stage_keys) if stage_keys is not None else previous.get(STAGE_KEYS, {}),
     }
+    described = scenario if scenario is not None else previous.get("scenario")
+    if described:
+        record["scenario"] = described
     if detail:
         record["traceback"] = detail
     try:
@@ -404,7 +408,10 @@ def run_experiment(cfg: DictConfig, ctx: RunContext) -> RunOutcome:
     runs, seed = int(cfg.mc.runs), int(cfg.mc.seed)
     memory = check_memory(cfg, prepared.scenario, prepared.sensor, len(prepared.variants))   # before any work
     ctx.run_dir.mkdir(parents=True, exist_ok=True)
-    write_status(ctx, experiment, "running", config_hash=config_hash, runs=runs, provenance={}, stage_keys={})
+    # what the scenario says it is (a recorded flight: the file that runs, not the experiment's default)
+    scenario_text = str(prepared.scenario.describe()) if callable(getattr(prepared.scenario, "describe", None)) else None
+    write_status(ctx, experiment, "running", config_hash=config_hash, runs=runs, provenance={}, stage_keys={},
+                 scenario=scenario_text)
     ctx.started = True             # from here on a failure is this job's to record in its folder
     run_provenance = provenance_of_run.record(ctx.run_dir, resolved, ctx.overrides,
                                               fingerprint.producers(resolved, "pipeline.run.runner"))
@@ -506,7 +513,11 @@ def run_experiment(cfg: DictConfig, ctx: RunContext) -> RunOutcome:
     log.info("[evaluate] metrics for %d variants x %d steps, %.2f s", len(variants), K,
              evaluation.measuring_seconds + time.perf_counter() - started)
 
-    text = job_header(format_summary(summary, experiment, runs, evaluated.comparisons), ctx)
+    text = format_summary(summary, experiment, runs, evaluated.comparisons)
+    if scenario_text:
+        first, newline, rest = text.partition("\n")
+        text = f"{first}\nscenario: {scenario_text}{newline}{rest}"
+    text = job_header(text, ctx)
     if report_tables:
         report_ctx = ReportContext(experiment, runs, display, metrics, summary)
         text += "".join(f"\n\n{table.render(report_ctx)}" for table in report_tables.values())

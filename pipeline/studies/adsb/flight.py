@@ -30,7 +30,7 @@ from typing import Mapping
 import numpy as np
 import pymap3d
 
-from filters.smoothing import smooth_constant_acceleration
+from filters.smoothing import smooth_with_covariance
 from pipeline.studies.adsb.reading import CleanFlight, find_flight_file, load_flight
 
 STATE_NAMES = ("x", "y", "z", "vx", "vy", "vz", "ax", "ay", "az")   # ENU east, north, up; study 000's layout
@@ -48,7 +48,8 @@ class Flight:
     RMS of smoothed minus raw position per ENU axis over the window's raw points [m];
     measured_time (M,), measured_position (M, 3): those raw points (ENU; up NaN where the altitude
     was stale); cleaning: what was dropped;
-    provenance: file, aircraft, window (UTC), site.
+    provenance: file, aircraft, window (UTC), site (and how it was placed); position_std (K, 3): the
+    smoother's own position std per axis at each scan (the truth's uncertainty given the samples) [m].
     """
 
     time: np.ndarray
@@ -62,6 +63,7 @@ class Flight:
     state_names: tuple[str, ...] = STATE_NAMES
     maneuver_names: tuple[str, ...] = MANEUVER_NAMES
     site: tuple[float, float, float] = (float("nan"), float("nan"), float("nan"))   # the ENU origin: lat, lon [deg], h [m]
+    position_std: np.ndarray | None = None     # (K, 3) the smoother's position std per ENU axis at each scan [m]
 
     def maneuver_shares(self) -> dict[str, float]:
         """Share of scans per maneuver label."""
@@ -72,8 +74,10 @@ class Flight:
         """One paragraph: the cleaning, the window, the residual, the maneuver shares."""
         shares = ", ".join(f"{k} {v:.0%}" for k, v in self.maneuver_shares().items())
         residual = ", ".join(f"{a} {r:.1f}" for a, r in zip("ENU", self.smoothing_residual))
+        std = "" if self.position_std is None else \
+            f"; truth position std RMS {float(np.sqrt(np.mean(np.sum(self.position_std ** 2, axis=1)))):.1f} m"
         return (f"{self.cleaning.describe()}. Window {self.provenance['window']}: {len(self.time)} scans; "
-                f"smoothing residual RMS [m] {residual}; maneuvers {shares}.")
+                f"smoothing residual RMS [m] {residual}{std}; maneuvers {shares}.")
 
 
 def geodetic_to_enu(latitude: np.ndarray, longitude: np.ndarray, height: np.ndarray,
@@ -106,26 +110,68 @@ def maneuver_labels(state: np.ndarray, up: np.ndarray, turn_threshold: float, cl
     return (TURN * turn + CLIMB_DESCENT * (np.abs(vertical_rate) > climb_threshold)).astype(np.int8)
 
 
+LISTED_SEGMENTS = 12      # a refusal lists this many of the longest segments
+
+
+def segment_listing(cleaned: CleanFlight) -> str:
+    """The flight's segments for a refusal: how many, and the longest ones first (a flight of 300
+    segments is chosen from by its longest, not by its first twelve)."""
+    spans = cleaned.segment_times()
+    longest = sorted(range(len(spans)), key=lambda i: (-(spans[i][1] - spans[i][0]), i))[:LISTED_SEGMENTS]
+    listing = ", ".join(f"[{spans[i][0]:g}, {spans[i][1]:g}] ({spans[i][1] - spans[i][0]:g} s)" for i in longest)
+    more = f" and {len(spans) - len(longest)} shorter" if len(spans) > len(longest) else ""
+    return (f"{cleaned.source} has {len(spans)} segment(s) between gaps of more than {cleaned.max_gap:g} s; the "
+            f"longest, at [start, end] s from its first kept point: {listing}{more}")
+
+
 def _window(cleaned: CleanFlight, start: float, duration: float | None) -> tuple[int, float, float]:
     """(segment index, window start, window end) in s from the first kept point; ValueError naming the key
-    when the window is not inside one segment."""
+    when the window is not inside one segment. ``duration`` None: the longest segment, whole (the first
+    of equally long ones), which needs ``start`` 0."""
     spans = cleaned.segment_times()
-    listing = ", ".join(f"[{a:g}, {b:g}]" for a, b in spans[:12]) + (" ..." if len(spans) > 12 else "")
-    where = (f"{cleaned.source} has {len(spans)} segment(s) between gaps of more than {cleaned.max_gap:g} s, "
-             f"at [start, end] s from its first kept point: {listing}")
+    if duration is None:
+        segment = int(np.argmax([b - a for a, b in spans]))
+        if start != 0:
+            raise ValueError(f"start: {start:g} s with duration null: a null duration takes the longest segment "
+                             f"whole, [{spans[segment][0]:g}, {spans[segment][1]:g}] s; give a duration to start "
+                             f"elsewhere. {segment_listing(cleaned)}")
+        return segment, spans[segment][0], spans[segment][1]
     inside = [i for i, (a, b) in enumerate(spans) if a <= start <= b]
     if not inside:
-        raise ValueError(f"start: {start:g} s is not inside a segment of the flight; {where}")
+        raise ValueError(f"start: {start:g} s is not inside a segment of the flight; {segment_listing(cleaned)}. "
+                         f"duration=null takes the longest segment")
     segment = inside[0]
     seg_end = spans[segment][1]
-    end = seg_end if duration is None else start + duration
+    end = start + duration
     if end > seg_end + 1e-9:
         following = [a for a, _ in spans[segment + 1:] if a <= end]
-        crossing = (f"spans the gap between {seg_end:g} s and {spans[segment + 1][0]:g} s" if following
+        crossing = (f"spans the gap between {seg_end:g} s and {spans[segment + 1][0]:g} s ("
+                    f"{cleaned.removed_between(seg_end, spans[segment + 1][0])})" if following
                     else f"runs past the end of the flight's segment at {seg_end:g} s")
         raise ValueError(f"duration: the window [{start:g}, {end:g}] s {crossing}; a truth needs positions "
-                         f"throughout its window. Choose start and duration within one segment: {where}")
+                         f"throughout its window. Choose start and duration within one segment, or duration=null "
+                         f"for the longest segment: {segment_listing(cleaned)}")
     return segment, start, end
+
+
+def site_of(latitude: float, longitude: float, site_latitude: float | None, site_longitude: float | None,
+            bearing_deg: float, distance: float) -> tuple[tuple[float, float], str]:
+    """The radar site (latitude, longitude [deg]) and how it was placed: pinned (``site_latitude`` and
+    ``site_longitude`` given: they win), else ``distance`` [m] along the WGS-84 geodesic at
+    ``bearing_deg`` (clockwise from north) from the window's median point (``latitude``, ``longitude``)."""
+    if (site_latitude is None) != (site_longitude is None):
+        given, missing = ("site_latitude", "site_longitude") if site_longitude is None else ("site_longitude",
+                                                                                            "site_latitude")
+        raise ValueError(f"{missing}: null while {given} is given; a pinned site needs both (they then win over "
+                         f"site_bearing_deg and site_distance), or neither to place it relative to the flight")
+    if site_latitude is not None and site_longitude is not None:
+        return (float(site_latitude), float(site_longitude)), "pinned by site_latitude and site_longitude"
+    if distance == 0:
+        return (latitude, longitude), "at the window's median point"
+    from pymap3d.vincenty import vreckon
+    lat, lon = vreckon(latitude, longitude, distance, bearing_deg % 360.0)
+    lon = (float(lon) + 180.0) % 360.0 - 180.0                               # vreckon gives [0, 360)
+    return (float(lat), lon), f"{distance / 1000:g} km at bearing {bearing_deg % 360.0:g} deg from the window's median point"
 
 
 # Flights built in this process, by file (path, modification time, size) and every argument: a
@@ -141,12 +187,14 @@ def build_flight(flight: str, scan_period: float = 1.0, start: float = 0.0, dura
                  site_latitude: float | None = None, site_longitude: float | None = None, site_height: float = 0.0,
                  horizontal_noise_std: float = 25.0, vertical_noise_std: float = 5.0, jerk_psd: float = 1.0,
                  max_gap: float = 20.0, max_speed: float = 600.0, max_vertical_speed: float = 150.0,
-                 turn_threshold: float = 1.5, climb_threshold: float = 2.5) -> Flight:
+                 turn_threshold: float = 1.5, climb_threshold: float = 2.5, site_bearing_deg: float = 180.0,
+                 site_distance: float = 30_000.0) -> Flight:
     """Read, clean and smooth ``flight`` into a truth at ``scan_period`` over [start, start + duration] s
-    from its first kept point (duration None: to the end of start's segment).
+    from its first kept point (duration None: the longest segment, whole).
 
-    The site defaults to the median latitude and longitude of the window's points at height 0 (the
-    flight may then pass overhead; give a site for a radar geometry). Noise stds are those the
+    The site (``site_of``): ``site_distance`` [m] at ``site_bearing_deg`` from the median latitude and
+    longitude of the window's points (default 30 km south, so the flight does not pass overhead), at
+    ``site_height``; ``site_latitude`` and ``site_longitude``, when both given, pin it. Noise stds are those the
     smoother assumes for one ADS-B position (east and north, up) [m]; ``jerk_psd`` [m^2/s^5] sets how
     fast it lets the acceleration change. The whole segment is smoothed, so the window's first and
     last scans are smoothed with data on both sides like the others.
@@ -157,7 +205,8 @@ def build_flight(flight: str, scan_period: float = 1.0, start: float = 0.0, dura
     path = find_flight_file(flight)
     status = path.stat()
     arguments = (scan_period, start, duration, site_latitude, site_longitude, site_height, horizontal_noise_std,
-                 vertical_noise_std, jerk_psd, max_gap, max_speed, max_vertical_speed, turn_threshold, climb_threshold)
+                 vertical_noise_std, jerk_psd, max_gap, max_speed, max_vertical_speed, turn_threshold, climb_threshold,
+                 site_bearing_deg, site_distance)
     key = (str(path.resolve()), status.st_mtime_ns, status.st_size, *(repr(a) for a in arguments))
     built = _BUILT.get(key)
     if built is None:
@@ -181,7 +230,8 @@ def _read_only(built: Flight) -> Flight:
 def _build_flight(flight: str, scan_period: float, start: float, duration: float | None, site_latitude: float | None,
                   site_longitude: float | None, site_height: float, horizontal_noise_std: float,
                   vertical_noise_std: float, jerk_psd: float, max_gap: float, max_speed: float,
-                  max_vertical_speed: float, turn_threshold: float, climb_threshold: float) -> Flight:
+                  max_vertical_speed: float, turn_threshold: float, climb_threshold: float, site_bearing_deg: float,
+                  site_distance: float) -> Flight:
     cleaned = load_flight(flight, max_gap, max_speed, max_vertical_speed)
     segment, t_start, t_end = _window(cleaned, start, duration)
     steps = int(np.floor((t_end - t_start) / scan_period + 1e-9))
@@ -192,9 +242,9 @@ def _build_flight(flight: str, scan_period: float, start: float, duration: float
     t = cleaned.time[first:stop] - cleaned.time[0]
     in_window = (t >= t_start - 1e-9) & (t <= t_end + 1e-9)
     lat, lon, alt = cleaned.latitude[first:stop], cleaned.longitude[first:stop], cleaned.altitude[first:stop]
-    site = (float(np.median(lat[in_window])) if site_latitude is None else float(site_latitude),
-            float(np.median(lon[in_window])) if site_longitude is None else float(site_longitude),
-            float(site_height))
+    (site_lat, site_lon), placed = site_of(float(np.median(lat[in_window])), float(np.median(lon[in_window])),
+                                           site_latitude, site_longitude, site_bearing_deg, site_distance)
+    site = (site_lat, site_lon, float(site_height))
     enu = geodetic_to_enu(lat, lon, alt, site)
     samples = enu.copy()
     fresh = cleaned.fresh_altitude[first:stop]
@@ -206,7 +256,7 @@ def _build_flight(flight: str, scan_period: float, start: float, duration: float
     order = np.argsort(all_time, kind="stable")
     positions = np.concatenate([samples, np.full((scan_time.size, 3), np.nan)])[order]
     noise = np.array([horizontal_noise_std, horizontal_noise_std, vertical_noise_std])
-    smoothed = smooth_constant_acceleration(all_time[order], positions, noise, jerk_psd)
+    smoothed, covariance = smooth_with_covariance(all_time[order], positions, noise, jerk_psd)
     at = np.empty(order.size, int)
     at[order] = np.arange(order.size)
     at_samples, at_scans = at[:t.size], at[t.size:]
@@ -217,10 +267,11 @@ def _build_flight(flight: str, scan_period: float, start: float, duration: float
         "source": cleaned.source, "icao24": cleaned.icao24, "callsign": cleaned.callsign,
         "window": f"[{t_start:g}, {t_end:g}] s of segment {segment} (UTC "
                   f"{datetime.fromtimestamp(absolute_start, timezone.utc):%Y-%m-%d %H:%M:%S} + {t_end - t_start:g} s)",
-        "site": f"latitude {site[0]:.6f} deg, longitude {site[1]:.6f} deg, height {site[2]:g} m (WGS-84)",
+        "site": f"latitude {site[0]:.6f} deg, longitude {site[1]:.6f} deg, height {site[2]:g} m (WGS-84), {placed}",
     }
     return Flight(time=scan_time - t_start, state=state,
                   maneuver=maneuver_labels(state, local_up(state[:, :3], site), turn_threshold, climb_threshold),
                   smoothing_residual=np.sqrt(np.nanmean(residual ** 2, axis=0)),
                   measured_time=t[in_window] - t_start, measured_position=samples[in_window],
-                  cleaning=cleaned, provenance=provenance, site=site)
+                  cleaning=cleaned, provenance=provenance, site=site,
+                  position_std=np.sqrt(covariance[at_scans, :, 0, 0]))

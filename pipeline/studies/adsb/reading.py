@@ -57,6 +57,11 @@ REQUIRED_COLUMNS = {"timestamp": "ms since the Unix epoch (or a date-time)", "la
 OPTIONAL_COLUMNS = {"groundspeed": "kt", "track": "deg", "vertical_rate": "ft/min", "onground": "bool",
                     "icao24": "text", "callsign": "text"}
 DROP_REASONS = ("missing_position", "on_ground", "duplicate_time", "non_increasing_time", "stale_position", "jump")
+# what each reason means to a reader of a refusal ("370 of 378 points out of time order")
+DROP_WORDS = {"missing_position": "without a position (NaN or missing time, latitude, longitude or altitude)",
+              "on_ground": "on the ground", "duplicate_time": "with a repeated time stamp",
+              "non_increasing_time": "out of time order", "stale_position": "repeating the previous position",
+              "jump": "out of reach (a jump faster than max_speed)"}
 
 FOOT = 0.3048                       # m, exactly
 KNOT = 1852.0 / 3600.0              # m/s, exactly
@@ -81,6 +86,31 @@ def feet_per_minute_to_metres_per_second(value: np.ndarray | float) -> np.ndarra
 def shipped_samples() -> list[str]:
     """Names of the flights shipped with the project (pipeline/studies/adsb/samples/*.parquet)."""
     return sorted(p.stem for p in SAMPLES_DIR.glob("*.parquet"))
+
+
+# what each shipped sample is (PROVENANCE.md's table): said in a report's header only when the file that
+# ran is that sample, so a flight given by its path is never described as the experiment's default one
+SAMPLE_DESCRIPTIONS = {
+    "aircraft_carrier": "shipped sample: a US Navy jet near an aircraft carrier off San Diego, climbs, descents and turns",
+    "zero_gravity": "shipped sample: parabolic (zero-gravity) flights over the Bay of Biscay",
+    "belevingsvlucht": "shipped sample: an airliner's sightseeing flight over the Netherlands",
+    "rega_sg": "shipped sample: a Rega rescue helicopter near St. Gallen, slow, tight turns and climbs",
+    "munich": "shipped sample: a radio-aid calibration flight near Munich, circles and racetracks",
+    "sisteron": "shipped sample: a glider thermalling near Sisteron",
+    "noisy_spoofing": "shipped sample: GNSS spoofing, positions frozen then jumping",
+    "noisy_time_issue": "shipped sample: time-stamp errors, positions held and released in steps",
+}
+
+
+def sample_description(path: Path | str) -> str:
+    """What the flight file ``path`` is when it is a shipped sample, else ''."""
+    path = Path(path)
+    shipped = SAMPLES_DIR / f"{path.stem}.parquet"
+    try:
+        same = shipped.is_file() and path.resolve() == shipped.resolve()
+    except OSError:
+        same = False
+    return SAMPLE_DESCRIPTIONS.get(path.stem, "") if same else ""
 
 
 def _traffic_samples_dir() -> Path | None:
@@ -204,11 +234,30 @@ class CleanFlight:
     dropped: Mapping[str, int]
     segments: tuple[tuple[int, int], ...]
     max_gap: float = field(default=20.0)
+    # every row of the file: its time stamp [s since the epoch; NaN where it has none] and what became of
+    # it (0 kept, i + 1 dropped for DROP_REASONS[i]), so a refusal can say what cleaning removed where
+    raw_time: np.ndarray = field(default_factory=lambda: np.empty(0))
+    raw_reason: np.ndarray = field(default_factory=lambda: np.empty(0, np.int8))
 
     def segment_times(self) -> list[tuple[float, float]]:
         """(start, end) of every segment in s from the first kept point."""
         t = self.time - self.time[0]
         return [(float(t[a]), float(t[b - 1])) for a, b in self.segments]
+
+    def removed_between(self, start: float, end: float) -> str:
+        """What cleaning removed of the file's rows stamped strictly between ``start`` and ``end`` [s from
+        the first kept point] (a gap), in words: "370 of 378 points out of time order, 8 without a
+        position", or that the file has no point there."""
+        t = self.raw_time - self.time[0]
+        inside = (t > start + 1e-9) & (t < end - 1e-9)
+        if not inside.any():
+            return f"the file has no point between {start:g} s and {end:g} s"
+        counts = np.bincount(self.raw_reason[inside], minlength=len(DROP_REASONS) + 1)
+        total = int(inside.sum())
+        parts = [f"{int(counts[i + 1])} of {total} points {DROP_WORDS[reason]}"
+                 for i, reason in sorted(enumerate(DROP_REASONS), key=lambda item: -counts[item[0] + 1])
+                 if counts[i + 1]]
+        return f"between {start:g} s and {end:g} s cleaning removed {', '.join(parts)}"
 
     def describe(self) -> str:
         """One line: points read, dropped per reason, kept, segments."""
@@ -289,13 +338,17 @@ def clean_flight(frame: pl.DataFrame, source: str, max_gap: float = 20.0, max_sp
     lat, lon = _numbers(frame, "latitude"), _numbers(frame, "longitude")
     alt = feet_to_metres(_numbers(frame, "altitude"))
     dropped: dict[str, int] = {}
+    reason = np.zeros(read, np.int8)                                       # 0: kept (CleanFlight.raw_reason)
+    code = {name: np.int8(i + 1) for i, name in enumerate(DROP_REASONS)}
     keep = np.isfinite(time_ms) & np.isfinite(lat) & np.isfinite(lon) & np.isfinite(alt)
     keep &= (np.abs(lat) <= 90) & (np.abs(lon) <= 180)
     dropped["missing_position"] = int(read - keep.sum())
+    reason[~keep] = code["missing_position"]
     if "onground" in frame.columns:
         on_ground = frame["onground"].cast(pl.Boolean, strict=False).fill_null(False).to_numpy() & keep
         dropped["on_ground"] = int(on_ground.sum())
         keep &= ~on_ground
+        reason[on_ground] = code["on_ground"]
     else:
         dropped["on_ground"] = 0
     index = np.flatnonzero(keep)
@@ -303,17 +356,21 @@ def clean_flight(frame: pl.DataFrame, source: str, max_gap: float = 20.0, max_sp
     latest = np.maximum.accumulate(np.concatenate([[-np.inf], t]))[:-1]      # the latest time before each
     dropped["duplicate_time"] = int(np.sum(t == latest))
     dropped["non_increasing_time"] = int(np.sum(t < latest))
+    reason[index[t == latest]] = code["duplicate_time"]
+    reason[index[t < latest]] = code["non_increasing_time"]
     index = index[t > latest]
     if index.size == 0:
         raise ConfigError(f"{source}: none of its {read} points is an airborne position with a time stamp "
                           f"(dropped: {', '.join(f'{k} {v}' for k, v in dropped.items())}). {_expected()}.")
     stale = np.concatenate([[False], (np.diff(lat[index]) == 0) & (np.diff(lon[index]) == 0)])
     dropped["stale_position"] = int(stale.sum())
+    reason[index[stale]] = code["stale_position"]
     index = index[~stale]
     seconds = time_ms[index] / 1000.0
     ecef = np.stack(pymap3d.geodetic2ecef(lat[index], lon[index], alt[index]), axis=-1)
     kept = _jump_free(ecef, seconds, max_speed)
     dropped["jump"] = int(np.sum(~kept))
+    reason[index[~kept]] = code["jump"]
     index, seconds = index[kept], seconds[kept]                            # the anchor is always kept
     vertical_rate = feet_per_minute_to_metres_per_second(_numbers(frame, "vertical_rate")[index])
     fresh_altitude = ~stale_altitudes(seconds, alt[index], vertical_rate)
@@ -330,7 +387,7 @@ def clean_flight(frame: pl.DataFrame, source: str, max_gap: float = 20.0, max_sp
         groundspeed=knots_to_metres_per_second(_numbers(frame, "groundspeed")[index]),
         track=_numbers(frame, "track")[index], vertical_rate=vertical_rate,
         read=read, dropped=dropped, segments=tuple((int(a), int(b)) for a, b in zip(bounds[:-1], bounds[1:])),
-        max_gap=float(max_gap))
+        max_gap=float(max_gap), raw_time=time_ms / 1000.0, raw_reason=reason)
 
 
 def load_flight(flight: str, max_gap: float = 20.0, max_speed: float = 600.0,
