@@ -211,3 +211,38 @@ def test_the_nees_bound_flags_diverging_steps_through_the_pipeline(tmp_path):
     assert (started["fault"] == FAULTS["nees_above_bound"]).all()
     diverged = outcome.summary.filter(pl.col("series") == "fault_runs_nees_above_bound")["value"][0]
     assert diverged == 4
+
+
+def test_an_estimate_lost_to_1e15_m_is_counted_as_diverged():
+    """Issue 38: MIE A on a long ADS-B flight ran 8.7e8 m off a truth within 3.5e5 m (RMSE up to 1e15 m
+    elsewhere) with a finite, symmetric, positive definite covariance: every numerical check passed and
+    0 runs were flagged. An error beyond faults.divergence_factor x the truth's scale is a fault."""
+    from filters.base import TrackEstimate
+    from pipeline.data import Truth
+    from pipeline.studies.single_target import SingleTargetStudy
+
+    R, K = 4, 30
+    rng = np.random.default_rng(3)
+    true = np.zeros((R, K, 1, 6))
+    true[..., 0] = 200.0 * np.arange(K)[None, :, None] + 30_000.0        # a target 30-36 km out, 200 m/s
+    true[..., 3] = 200.0
+    truth = Truth(np.arange(K, dtype=float), true, ("x", "y", "z", "vx", "vy", "vz"))
+    state = true[:, :, 0, :] + 100.0 * rng.standard_normal((R, K, 6))      # tracking badly is no fault
+    state[2, 20:, :3] = 1e15                                               # run 2 lost from scan 20
+    covariance = np.broadcast_to(np.diag([1e6] * 6), (R, K, 6, 6)).copy()
+    covariance[2, 20:] *= 1e20                                             # huge, but PD and symmetric
+    estimate = TrackEstimate(truth.time, state, covariance)
+    flags = SingleTargetStudy().fault_flags(estimate, truth, FaultChecks())
+    assert (flags[2, 20:] == FAULTS["beyond_scale"]).all() and not flags[2, :20].any()
+    assert not flags[[0, 1, 3]].any()
+    assert fault_summary(flags)["diverged_runs"] == 1 and fault_summary(flags)["fault_runs_beyond_scale"] == 1
+    # the bound is relative to the scenario's scale: the same error on a truth 1e14 m out is no fault
+    far = Truth(truth.time, true * 1e10, truth.state_names)
+    shifted = TrackEstimate(truth.time, state + (far.state - true)[:, :, 0, :], covariance)
+    assert not SingleTargetStudy().fault_flags(shifted, far, FaultChecks())[2].any()
+    assert not SingleTargetStudy().fault_flags(estimate, truth, FaultChecks(divergence_factor=None)).any()
+
+
+def test_divergence_factor_is_checked():
+    with pytest.raises(ValueError, match="faults.divergence_factor: 0 must be a number > 0"):
+        FaultChecks(divergence_factor=0)

@@ -16,7 +16,15 @@ Bits (``FAULTS``):
 - ``weights_underflow``: a particle filter reported that all its weights underflowed at that step
   (``extras["weights_underflow"]``) and had to restart its weights;
 - ``never_finite``: the run has no finite estimate at any step (its leading NaN never ends: a
-  filter fed NaN, or one that failed at its start); every step of the run is flagged.
+  filter fed NaN, or one that failed at its start); every step of the run is flagged;
+- ``beyond_scale``: the estimate is farther from the truth than ``faults.divergence_factor`` (default
+  100) times the scenario's scale, the largest norm of the truth's state over every run and step
+  (``truth_scale``): a filter lost to numbers, not one tracking badly. Why: the checks above are
+  numerical, so a filter whose state runs off to 1e15 m with a large but finite, symmetric,
+  positive definite covariance passed them all (MIE A on a 10 000 s ADS-B flight: 8.7e8 m off a
+  truth within 3.5e5 m, 0 runs flagged), and the NEES bound is off by default (a consistent filter's
+  NEES has no scale-free bound that fits every study). 100 x the scale is far outside any estimate
+  a filter still following the target makes, in every study (their errors are below the scale).
 """
 
 from __future__ import annotations
@@ -28,7 +36,8 @@ import numpy as np
 from pipeline.evaluation.metrics import Metric, nees, register
 
 FAULTS = {"nonfinite": 1, "asymmetric": 2, "not_positive_definite": 4, "nees_above_bound": 8,
-          "weights_underflow": 16, "never_finite": 32}
+          "weights_underflow": 16, "never_finite": 32, "beyond_scale": 64}
+DIVERGENCE_FACTOR = 100.0
 
 
 @dataclass(frozen=True)
@@ -37,8 +46,13 @@ class FaultChecks:
 
     symmetry_tolerance: float = 1e-8
     nees_bound: float | None = None
+    divergence_factor: float | None = DIVERGENCE_FACTOR
 
     def __post_init__(self) -> None:
+        if self.divergence_factor is not None and (isinstance(self.divergence_factor, bool) or not (
+                np.isfinite(self.divergence_factor) and self.divergence_factor > 0)):
+            raise ValueError(f"faults.divergence_factor: {self.divergence_factor!r} must be a number > 0 (an error "
+                             f"this many times the truth's scale is flagged beyond_scale) or null (no such test)")
         if not (np.isfinite(self.symmetry_tolerance) and self.symmetry_tolerance >= 0):
             raise ValueError(f"faults.symmetry_tolerance: {self.symmetry_tolerance!r} must be a finite number >= 0 "
                              f"(relative to the largest covariance entry)")
@@ -46,11 +60,21 @@ class FaultChecks:
             raise ValueError(f"faults.nees_bound: {self.nees_bound!r} must be a number > 0 or null (no NEES test)")
 
 
+def truth_scale(state: np.ndarray) -> float:
+    """The scenario's scale for ``beyond_scale``: the largest norm of the truth's state (R, K, [T,] n)
+    over its runs, steps and targets (finite components); 0 for an all-NaN truth."""
+    state = np.asarray(state, dtype=float)
+    norms = np.sqrt(np.nansum(state ** 2, axis=-1)) if state.size else np.zeros(1)
+    return float(np.max(norms, initial=0.0))
+
+
 def fault_flags(state: np.ndarray, covariance: np.ndarray, checks: FaultChecks = FaultChecks(),
-                error: np.ndarray | None = None, weights_underflow: np.ndarray | None = None) -> np.ndarray:
+                error: np.ndarray | None = None, weights_underflow: np.ndarray | None = None,
+                scale: float | None = None) -> np.ndarray:
     """(R, K) uint8 bit mask of FAULTS for states (R, K, n) and covariances (R, K, n, n).
 
-    ``error`` (R, K, n): estimate minus truth, for the NEES bound; ``weights_underflow`` (R, K) bool.
+    ``error`` (R, K, n): estimate minus truth, for the NEES bound and, with ``scale`` (``truth_scale``
+    of that truth), the ``beyond_scale`` test; ``weights_underflow`` (R, K) bool.
     Extra leading axes (e.g. targets: (R, K, T, n)) are allowed: a step is flagged if any of them is.
     """
     state = np.asarray(state, dtype=float)
@@ -70,6 +94,11 @@ def fault_flags(state: np.ndarray, covariance: np.ndarray, checks: FaultChecks =
         with np.errstate(all="ignore"):
             value = nees(e, _checked_matrices(covariance, finite, both))
         flags |= np.where(finite & ~(value <= checks.nees_bound), FAULTS["nees_above_bound"], 0).astype(np.uint8)
+    if checks.divergence_factor is not None and error is not None and scale is not None and scale > 0:
+        with np.errstate(all="ignore"):
+            distance = np.sqrt(np.nansum(np.asarray(error, dtype=float) ** 2, axis=-1))
+        flags |= np.where(finite_state & (distance > checks.divergence_factor * scale),
+                          FAULTS["beyond_scale"], 0).astype(np.uint8)
     if weights_underflow is not None:
         flags |= np.where(np.asarray(weights_underflow, dtype=bool), FAULTS["weights_underflow"], 0).astype(np.uint8)
     while flags.ndim > 2:                      # targets etc.: a step is faulty if any of them is

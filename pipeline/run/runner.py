@@ -749,11 +749,12 @@ def build_fault_checks(cfg: DictConfig) -> FaultChecks:
     if node is None:
         return FaultChecks()
     if not isinstance(node, DictConfig):
-        raise ConfigError(f"faults: {node!r} must be a mapping with symmetry_tolerance and nees_bound.")
-    unknown = sorted(set(node.keys()) - {"symmetry_tolerance", "nees_bound"})
+        raise ConfigError(f"faults: {node!r} must be a mapping with symmetry_tolerance, nees_bound and "
+                          f"divergence_factor.")
+    unknown = sorted(set(node.keys()) - {"symmetry_tolerance", "nees_bound", "divergence_factor"})
     if unknown:
-        raise ConfigError(f"faults: unknown key(s) {unknown}; allowed are symmetry_tolerance (a number >= 0) and "
-                          f"nees_bound (a number > 0 or null).")
+        raise ConfigError(f"faults: unknown key(s) {unknown}; allowed are symmetry_tolerance (a number >= 0), "
+                          f"nees_bound (a number > 0 or null) and divergence_factor (a number > 0 or null).")
     try:
         return FaultChecks(**OmegaConf.to_container(node, resolve=True))
     except (TypeError, ValueError) as exc:

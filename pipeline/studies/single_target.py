@@ -57,10 +57,10 @@ class SingleTargetStudy(Study):
         return schemas.estimate_to_frame(estimate, truth.state_names)
 
     def fault_flags(self, estimate, truth, checks: FaultChecks) -> np.ndarray:
-        """pipeline.evaluation.faults masks, with the NEES test against target 0's truth."""
-        from pipeline.evaluation.faults import fault_flags
+        """pipeline.evaluation.faults masks, with the NEES and scale tests against target 0's truth."""
+        from pipeline.evaluation.faults import fault_flags, truth_scale
         return fault_flags(estimate.state, estimate.covariance, checks, estimate.state - truth.state[:, :, 0, :],
-                           estimate.extras.get("weights_underflow"))
+                           estimate.extras.get("weights_underflow"), truth_scale(truth.state[:, :, 0, :]))
 
     def per_step_metrics(self, truth, estimate, sensor) -> dict[str, np.ndarray]:
         from pipeline.evaluation.bounds import bound_metrics
