@@ -26,7 +26,7 @@ FIXED_KEYS: dict[str, tuple[str, ...]] = {
     "uncertainty": ("confidence", "bootstrap_resamples"),
     "timing": ("passes", "budget_s"),
     "record": ("enabled", "runs"),
-    "faults": ("symmetry_tolerance", "nees_bound"),
+    "faults": ("symmetry_tolerance", "nees_bound", "divergence_factor"),
     "cache": ("enabled", "publish"),
     "paths": ("artifacts",),
     "plugins": ("packages",),
