@@ -27,8 +27,9 @@ and, the same for every variant, what the truth is made of (the flight, not the 
   std sqrt(trace P) of the truth (filters.smoothing.smooth_with_covariance), how far the truth itself
   may be from the aircraft; ``truth_std_to_best_rmse`` per window: its ratio to the lowest position
   RMSE of the variants there, and ``truth_uncertain`` 1 where that ratio exceeds ``truth_std_limit``
-  (default 1/3: the truth's error, adding in quadrature, is then more than 6 % of the best filter's
-  measured RMSE, the size of the differences the tables are read for), else 0;
+  (default 1/3: with the truth's error adding in quadrature, the best filter's own error is then
+  below sqrt(1 - 1/9) = 0.94 of its measured RMSE, about 6 %, the size of the differences the
+  tables are read for), else 0;
 - ``points_read``, ``points_kept``, ``segments`` and ``dropped_<reason>`` (component = reason,
   pipeline.studies.adsb.reading: missing_position, on_ground, duplicate_time, non_increasing_time,
   stale_position, jump; and the altitudes not used, stale_altitude, altitude_jump): the cleaning;
