@@ -94,6 +94,13 @@ def test_a_radar_beyond_its_range_is_refused_before_any_stage(tmp_path):
     distance = float(text.split("the target is ")[1].split(" km")[0])
     assert 8500 < distance < 9500, text                                    # San Diego to St. Gallen
     assert "\n" not in text and not (tmp_path / "cache").exists() and not (tmp_path / "runs" / "far").exists()
+    # a site placed relative to the flight but still out of range: the advice is the window or the range
+    from pipeline.sensors import Radar3D
+    from pipeline.studies.adsb.adapter import FlightStudy
+    far = RecordedFlight("rega_sg", start=285.0, duration=60.0, site_distance=500_000.0)
+    with pytest.raises(ConfigError, match=r"500 km at bearing 180 deg .* beyond its range of 463 km .* shorter window"):
+        FlightStudy().check(far, Radar3D(max_range=463_000.0), {})
+    FlightStudy().check(far, Radar3D(), {})                                 # no max_range: no limit
     proc = cli(tmp_path, *overrides)                                        # the command line: exit 2, no traceback
     assert proc.returncode == 2 and "sensors.max_range: the radar site" in proc.stderr
     assert "Traceback" not in proc.stderr

@@ -137,12 +137,16 @@ class FlightStudy(SingleTargetStudy):
             sensor.check_range(flight.state[:, :3], flight.time)
         except ValueError as exc:
             reason = str(exc).removeprefix("max_range: ")
+            advice = ("A pinned site (scenario.site_latitude and scenario.site_longitude) wins over "
+                      "scenario.site_bearing_deg and scenario.site_distance: set both to null to place the radar "
+                      "relative to the flight (30 km south of the window's median point by default), pin a site "
+                      "near it, or raise sensors.max_range."
+                      if "pinned" in flight.provenance["site"] else
+                      "The window reaches that far from its own median point: choose a shorter window "
+                      "(scenario.start, scenario.duration), or raise sensors.max_range.")
             raise ConfigError(
                 f"sensors.max_range: the radar site at {flight.provenance['site']} is too far from the flight "
-                f"{flight.provenance['source']}: {reason} (sensors.max_range). A pinned site (scenario.site_latitude "
-                f"and scenario.site_longitude) wins over scenario.site_bearing_deg and scenario.site_distance: set "
-                f"both to null to place the radar relative to the flight (30 km south of the window's median point "
-                f"by default), pin a site near it, or raise sensors.max_range.") from None
+                f"{flight.provenance['source']}: {reason} (sensors.max_range). {advice}") from None
 
     def record(self, path, inputs) -> None:
         """Study 000's 3-D recording plus the maneuver class on the timeline and a map of run 0 (the
