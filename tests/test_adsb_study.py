@@ -12,7 +12,7 @@ import pytest
 
 from pipeline.errors import ConfigError
 from pipeline.studies.adsb.flight import MANEUVER_NAMES
-from tests.test_pipeline import run_in_process
+from tests.helpers.runs import run_in_process
 
 FLIGHTS = ("adsb_jet", "adsb_zero_gravity", "adsb_calibration", "adsb_helicopter")
 

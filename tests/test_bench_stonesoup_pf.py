@@ -5,13 +5,13 @@ from __future__ import annotations
 
 import pytest
 
-from tests.extras import require_extra
+from tests.helpers.extras import require_extra
 
 require_extra("stonesoup", "stonesoup")
 
 from benchmarks import bench_stonesoup_pf  # noqa: E402
 
-# full tier (tests/conftest.py): a benchmark run
+# full tier (tests/helpers/tiers.py): a benchmark run
 pytestmark = pytest.mark.full
 
 

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from filters.bias import EXXRegistration, LocalTracking, LocalTracks, PseudoBiasRegistration, predict_local, update_local
-from tests.test_bias import simulate
+from tests.helpers.bias_reports import simulate
 
 
 def _stack(seed: int = 0, runs: int = 7, targets: int = 5):

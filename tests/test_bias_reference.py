@@ -25,7 +25,7 @@ from omegaconf import OmegaConf
 
 from benchmarks.reference_bias import reference_pseudo_bias
 from pipeline.run.config import build
-from tests.conftest import CONF
+from tests.helpers.config import CONF
 
 RUNS, SEED = 2, 1
 TOL = 1e-8

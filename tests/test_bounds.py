@@ -11,7 +11,7 @@ from hydra import compose, initialize_config_dir
 from filters.bounds import posterior_crlb
 from filters.kalman import kalman_filter
 from pipeline.run.config import build
-from tests.conftest import CONF
+from tests.helpers.config import CONF
 from pipeline.evaluation.evaluate import resolved
 
 
@@ -173,7 +173,7 @@ def test_no_filter_beats_the_bound_of_the_truths_own_process_beyond_monte_carlo_
     report position_bound_model, the bound of the filters' own model, which they may undercut."""
     import polars as pl
 
-    from tests.test_pipeline import run_in_process
+    from tests.helpers.runs import run_in_process
     out, _ = run_in_process(tmp_path, experiment, f"experiment={experiment}", *overrides)
     ratio = out.summary.filter((pl.col("series") == "position_rmse_over_bound") & pl.col("window").is_not_null()
                                & pl.col("value").is_not_null())

@@ -63,7 +63,7 @@ def test_the_recording_uses_the_same_colour_and_width_per_variant(tmp_path):
     path = tmp_path / "c.rrd"
     path.write_bytes(stream.read(flush=True))
     rec.disconnect()
-    from tests.rrd_reading import read_chunks
+    from tests.helpers.rrd_reading import read_chunks
 
     style = {p.rsplit("/", 1)[1]: df for p, static, _, df in read_chunks(path) if static and p.startswith("/metrics/")}
     widths = rerun_widths([k for k, _ in VARIANTS])

@@ -18,7 +18,8 @@ from omegaconf import OmegaConf
 from filters.base import MEASUREMENT_KINDS, SERIES_KINDS, accepted_kinds, produced_kind
 from pipeline.run.config import filter_classes_in_conf, filter_nodes_in_conf
 from pipeline.errors import ConfigError
-from tests.test_pipeline import cli, run_in_process
+from tests.helpers.processes import run_pipeline
+from tests.helpers.runs import run_in_process
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -96,7 +97,7 @@ class UserCV:
 
 
 def test_on_the_command_line_the_refusal_is_one_paragraph(tmp_path):
-    proc = cli(tmp_path, "experiment=async_bias", "+filter@filters.x=fsimm", "mc.runs=2")
+    proc = run_pipeline("experiment=async_bias", "+filter@filters.x=fsimm", "mc.runs=2", artifacts=tmp_path)
     assert proc.returncode == 2
     assert "Traceback" not in proc.stderr and proc.stderr.startswith("error: filters.x:")
     assert proc.stderr.strip().count("\n") == 0
@@ -106,7 +107,7 @@ def test_on_the_command_line_the_refusal_is_one_paragraph(tmp_path):
 def test_the_shipped_filters_run_in_every_experiment_of_their_kind():
     """A filter that takes a kind runs with every sensor of that kind (composition is by kind, not by study)."""
     from pipeline.run.config import check_measurement_kinds
-    from tests.conftest import EXPERIMENTS, composed
+    from tests.helpers.config import composed, EXPERIMENTS
     classes = filter_classes_in_conf()
     for experiment in EXPERIMENTS:
         cfg = composed(experiment)

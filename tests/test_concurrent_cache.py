@@ -36,7 +36,7 @@ from pipeline.storage import store
 from pipeline.storage.schemas import META_TABLE, META_VERSION, SCHEMA_VERSION
 from pipeline.storage.store import META_KEY, StageCache, publish
 
-# full tier (tests/conftest.py): jobs at once on one cache
+# full tier (tests/helpers/tiers.py): jobs at once on one cache
 pytestmark = pytest.mark.full
 
 ROOT = Path(__file__).resolve().parents[1]

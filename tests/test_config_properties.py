@@ -24,7 +24,7 @@ from hypothesis import HealthCheck, given, settings, strategies as st
 
 from pipeline.errors import ConfigError
 from pipeline.run.runner import prepare
-from tests.conftest import composed
+from tests.helpers.config import composed
 
 ROOT = Path(__file__).resolve().parents[1]
 EXPERIMENTS = sorted(p.stem for p in (ROOT / "conf" / "experiment").glob("*.yaml"))

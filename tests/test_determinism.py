@@ -9,42 +9,13 @@ import subprocess
 import sys
 from pathlib import Path
 
-import polars as pl
 import pytest
-from polars.testing import assert_frame_equal
 
 from pipeline.run.runner import RunContext, run_experiment
-from tests.conftest import composed_config, smoke_experiments
+from tests.helpers.assertions import assert_same_tables
+from tests.helpers.config import composed_config, smoke_experiments
 
 ROOT = Path(__file__).resolve().parents[1]
-# columns that say where and when a table was made, not what it holds
-PROVENANCE = ("run_id", "config_hash", "overrides", "sweep", "job_num", "estimates_from_cache", "paths.artifacts", "cache.enabled",
-              "hydra/launcher", "mc.chunk_runs")
-TIMINGS = ("compute_seconds", "compute_pct_of_reference")
-
-
-def content(run_dir: Path) -> dict[str, pl.DataFrame]:
-    """Every table of a run directory, without provenance columns and wall-clock rows."""
-    tables = {}
-    for path in sorted(run_dir.rglob("*.parquet")):
-        df = pl.read_parquet(path)
-        df = df.drop([c for c in df.columns if c in PROVENANCE or c.startswith(("hydra", "record."))])
-        if "metric" in df.columns:
-            df = df.filter(~pl.col("series").is_in(TIMINGS))
-        tables[path.relative_to(run_dir).as_posix()] = df
-    return tables
-
-
-def assert_same_tables(a: Path, b: Path) -> None:
-    left, right = content(a), content(b)
-    assert sorted(left) == sorted(right)
-    for name in left:
-        try:
-            assert_frame_equal(left[name], right[name], check_exact=True)
-        except AssertionError as exc:
-            raise AssertionError(f"{name} differs between {a} and {b}: {exc}") from None
-
-
 def in_process(artifacts: Path, name: str, *overrides: str) -> Path:
     cfg = composed_config(f"paths.artifacts={artifacts}", "record.enabled=false", *overrides)
     ctx = RunContext(artifacts / "runs" / name, artifacts, list(overrides))

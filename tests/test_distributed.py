@@ -18,7 +18,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.extras import require_extra
+from tests.helpers.extras import require_extra
 
 # .ci/run sets MTT_REQUIRE_DISTRIBUTED=1: in CI a missing extra fails instead of skipping
 require_extra("distributed", "hydra_plugins.hydra_ray_launcher", "ray")
@@ -26,7 +26,7 @@ require_extra("distributed", "hydra_plugins.hydra_ray_launcher", "ray")
 from pipeline.results.query import query  # noqa: E402  (after the skip: the module needs nothing of Ray)
 
 ROOT = Path(__file__).resolve().parents[1]
-# full tier (tests/conftest.py): the Ray launcher
+# full tier (tests/helpers/tiers.py): the Ray launcher
 pytestmark = [pytest.mark.distributed, pytest.mark.full]
 
 

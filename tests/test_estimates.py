@@ -17,7 +17,7 @@ from pipeline.storage.estimates import RecordedRuns, StoredEstimates, recorded_r
 from pipeline.run.runner import RunContext, run_experiment
 from pipeline.storage.schemas import PackedCovariance, estimate_from_frame, estimate_to_frame
 from pipeline.storage.store import atomic_write_parquet
-from tests.conftest import CONF
+from tests.helpers.config import CONF
 
 
 def _estimate(runs: int = 5, steps: int = 4, n: int = 2, seed: int = 0) -> TrackEstimate:
@@ -199,7 +199,7 @@ def test_recomputing_a_run_reads_one_variants_estimate_at_a_time(tmp_path, monke
     """pipeline.results.recompute evaluates the stored tables through StoredEstimates; its loop kept the
     previous estimate while the next one was read (two in memory)."""
     from pipeline.results.recompute import recompute
-    from tests.test_pipeline import run_in_process
+    from tests.helpers.runs import run_in_process
 
     _, ctx = run_in_process(tmp_path, "run", "experiment=mie_los", "mc.runs=2")
     returned: list[weakref.ref] = []

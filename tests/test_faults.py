@@ -136,7 +136,7 @@ def test_the_pipeline_flags_injected_faults_per_run_and_step_and_counts_them(tmp
     from hydra import compose, initialize_config_dir
 
     from pipeline.run.runner import RunContext, run_experiment
-    from tests.conftest import CONF
+    from tests.helpers.config import CONF
 
     overrides = ["mc.runs=5", "scenario.steps=30", "filters.fsimm._target_=tests.faulty_filters.FaultyFSIMM", "plugins.packages=[tests]",
                  "variants=[fsimm,vsimm]"]
@@ -170,9 +170,9 @@ def test_a_particle_filter_whose_weights_all_underflow_restarts_them_and_flags_t
     import dataclasses
 
     from filters.particle import MultipleModelParticleFilter
-    from tests.test_particle import _reports
+    from tests.helpers.filter_inputs import buoy_reports
 
-    _, reports = _reports(runs=3, duration=60.0)
+    _, reports = buoy_reports(runs=3, duration=60.0)
     healthy = MultipleModelParticleFilter(particles=100, auxiliary=auxiliary, chunk_runs=3, workers=1,
                                           engine=engine).run(reports)
     z = reports.z.copy()
@@ -194,7 +194,7 @@ def test_the_nees_bound_flags_diverging_steps_through_the_pipeline(tmp_path):
     from hydra import compose, initialize_config_dir
 
     from pipeline.run.runner import RunContext, run_experiment
-    from tests.conftest import CONF
+    from tests.helpers.config import CONF
 
     def run(name, bound):
         overrides = ["mc.runs=4", "scenario.steps=30", "variants=[fsimm]", f"faults.nees_bound={bound}"]

@@ -9,7 +9,7 @@ from filters.base import MeasurementSeries
 from filters.imm import AOVSIMM, FSIMM, VSIMM, ModeSet, compact, drop_slots
 from filters.kalman import inverse_and_logdet, kalman_filter, predict, update
 from filters.models import AccelerationModelSet, constant_velocity_transition, two_point_initialisation
-from tests.conftest import measurements, scenario
+from tests.helpers.filter_inputs import measurements, scenario
 
 
 def test_predict_matches_hand_computed():

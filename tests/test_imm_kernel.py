@@ -10,7 +10,7 @@ import pytest
 
 from filters.base import MeasurementSeries
 from filters.imm import AOVSIMM, FSIMM, VSIMM, LinearModelBank, ModeSet, imm_cycle
-from tests.conftest import measurements, scenario
+from tests.helpers.filter_inputs import measurements, scenario
 
 EXTRAS = ("mode_probabilities", "acceleration", "nis")
 DECISIONS = ("models_evaluated", "active_group", "candidate_group")

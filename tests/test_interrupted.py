@@ -14,9 +14,9 @@ from pathlib import Path
 import polars as pl
 import pytest
 
-from tests.test_determinism import assert_same_tables
+from tests.helpers.assertions import assert_same_tables
 
-# full tier (tests/conftest.py): jobs killed mid-write
+# full tier (tests/helpers/tiers.py): jobs killed mid-write
 pytestmark = pytest.mark.full
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -67,7 +67,7 @@ def assert_no_broken_final_file(artifacts: Path) -> None:
         if path.suffix == ".parquet":
             pl.read_parquet(path)                                  # raises on a truncated file
         elif path.suffix == ".rrd":
-            from tests.rrd_reading import read_chunks
+            from tests.helpers.rrd_reading import read_chunks
             assert read_chunks(path)
     return temps
 
@@ -97,7 +97,7 @@ def test_a_run_killed_while_writing_the_recording_reruns_to_a_complete_one(tmp_p
     assert assert_no_broken_final_file(tmp_path)
     rerun = run(tmp_path)
     assert_no_broken_final_file(tmp_path)
-    from tests.rrd_reading import read_chunks
+    from tests.helpers.rrd_reading import read_chunks
     assert read_chunks(rerun / "recording.rrd")
     (rerun / "recording.rrd").unlink()
     assert_same_tables(reference, rerun)

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-# full tier (tests/conftest.py): peak memory of whole jobs in their own processes
+# full tier (tests/helpers/tiers.py): peak memory of whole jobs in their own processes
 pytestmark = pytest.mark.full
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -145,7 +145,7 @@ def test_the_memory_estimate_does_not_grow_with_the_number_of_variants():
 
     from pipeline.run.memory import check
     from pipeline.run.runner import prepare
-    from tests.conftest import composed
+    from tests.helpers.config import composed
 
     cfg = composed("adsb_jet", "mc.runs=100", "paths.artifacts=/nonexistent-artifacts")
     with open_dict(cfg):

@@ -9,8 +9,8 @@ from hydra import compose, initialize_config_dir
 
 from filters.particle.reference import BearingLikelihood, SonobuoyModel, _masked_nis, bearings
 from pipeline.run.config import build
-from tests.conftest import CONF
-from tests.test_study004_pipeline import SHORT, run_study
+from tests.helpers.config import CONF
+from tests.helpers.runs import SONOBUOY_SHORT, run_study
 
 
 def test_masked_nis_skips_missed_components_as_worked_by_hand():
@@ -69,9 +69,9 @@ def test_the_bound_follows_the_true_turn_and_shrinks_with_information():
 
 
 def test_every_variant_reports_nis_and_rmse_over_the_bound(tmp_path):
-    from tests.rrd_reading import entity_index, read_chunks
+    from tests.helpers.rrd_reading import entity_index, read_chunks
 
-    out, ctx = run_study(tmp_path, "limits", *SHORT, experiment="sonobuoy_case2b", record=True)
+    out, ctx = run_study(tmp_path, "limits", *SONOBUOY_SHORT, experiment="sonobuoy_case2b", record=True)
     metrics = out.metrics
     entities = set(entity_index(read_chunks(ctx.run_dir / "recording.rrd")))
     for key in ("ammpf", "sir_mm", "ekf"):

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-# full tier (tests/conftest.py): a fifty-job sweep's memory
+# full tier (tests/helpers/tiers.py): a fifty-job sweep's memory
 pytestmark = pytest.mark.full
 
 ROOT = Path(__file__).resolve().parents[1]

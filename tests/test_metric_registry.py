@@ -9,7 +9,7 @@ import pytest
 
 from pipeline.evaluation import metrics
 from pipeline.evaluation.metrics import Metric, format_value, lookup, nees, register
-from tests.conftest import smoke_experiments
+from tests.helpers.config import smoke_experiments
 
 
 

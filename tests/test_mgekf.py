@@ -12,7 +12,7 @@ from filters.mgekf import (
 )
 from filters.models import singer_process_noise, singer_transition
 from pipeline.studies.sonar.scenario import SonarEncounter
-from pipeline.studies.sonar.sensor import ActivePassiveSonar
+from tests.helpers.filter_inputs import sonar_reports
 
 
 def _random_pairs(n=500, seed=0):
@@ -96,25 +96,13 @@ def test_truth_follows_the_model_exactly_for_a_straight_target():
     np.testing.assert_allclose(predicted, x[1:], atol=1e-6)
 
 
-def _reports(duration=3000.0, active=((0.0, 1.0),), bearing_std_deg=0.0, range_std=0.0, runs=2, turns=(),
-             filter_bearing_std=1e-3, filter_range_std=1.0, seed=0):
-    scenario = SonarEncounter(duration=duration, target_turns=[list(t) for t in turns])
-    truth = scenario.generate(runs, seed)
-    detections = ActivePassiveSonar(active_intervals=[list(a) for a in active], bearing_std_deg=bearing_std_deg,
-                                    range_std=range_std).measure(truth, seed)
-    reports = SonarReports(detections.time, detections.z[:, :, 0], detections.sensor == 1,
-                           truth.labels["ownship_acceleration"][:, :, 0], truth.labels["ownship"][:, 0, 0, 2:4],
-                           filter_bearing_std, filter_range_std)
-    return truth, reports
-
-
 @pytest.mark.parametrize("tracker", [OnlyMGEKF(sigma_m=1e-4), PlainEKF(sigma_m=1e-4),
                                      KFPlusMGEKF(sigma_m=1e-4, handover_acceleration_variance="consistent")])
 def test_noise_free_straight_target_converges_with_a_zig_zag_own_ship(tracker):
     """One exact range + bearing at t = 0, bearings only afterwards: the start's velocity error
     (the target's 7 m/s) grows the error to ~230 m, the own-ship's legs make it observable, and
     the estimate converges to the truth."""
-    truth, reports = _reports()
+    truth, reports = sonar_reports()
     est = tracker.run(reports)
     error = np.linalg.norm(est.state[..., :2] - truth.state[:, :, 0, :2], axis=-1)
     assert error[:, 49].min() > 100.0
@@ -179,7 +167,7 @@ def test_hand_over_pads_and_the_variance_is_checked():
 
 
 def test_kf_architecture_has_no_acceleration_while_active():
-    truth, reports = _reports(duration=700.0, active=((0.0, 300.0), (500.0, 600.0)), bearing_std_deg=1.0,
+    truth, reports = sonar_reports(duration=700.0, active=((0.0, 300.0), (500.0, 600.0)), bearing_std_deg=1.0,
                               range_std=10.0, filter_bearing_std=np.radians(1.0), filter_range_std=10.0)
     est = KFPlusMGEKF(sigma_m=0.01).run(reports)
     active = reports.active
@@ -189,7 +177,7 @@ def test_kf_architecture_has_no_acceleration_while_active():
 
 
 def test_batched_runs_equal_single_runs():
-    _, reports = _reports(duration=600.0, active=((0.0, 200.0),), bearing_std_deg=1.0, range_std=10.0, runs=3,
+    _, reports = sonar_reports(duration=600.0, active=((0.0, 200.0),), bearing_std_deg=1.0, range_std=10.0, runs=3,
                           filter_bearing_std=np.radians(1.0), filter_range_std=10.0)
     single = SonarReports(reports.time, reports.z[1:2], reports.active, reports.ownship_acceleration[1:2],
                           reports.ownship_velocity0[1:2], reports.bearing_std, reports.range_std)
@@ -207,7 +195,7 @@ def test_bad_parameters_name_the_key(kwargs, key):
 
 
 def test_reports_must_start_active():
-    _, reports = _reports(duration=20.0)
+    _, reports = sonar_reports(duration=20.0)
     with pytest.raises(ValueError, match="active"):
         SonarReports(reports.time, reports.z, np.zeros_like(reports.active), reports.ownship_acceleration,
                      reports.ownship_velocity0, 0.01, 10.0)

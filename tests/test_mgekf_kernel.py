@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from filters.mgekf import KFPlusMGEKF, OnlyMGEKF, PlainEKF
-from tests.test_mgekf import _reports
+from tests.helpers.filter_inputs import sonar_reports
 
 TRACKERS = [
     pytest.param(lambda e: KFPlusMGEKF(handover_acceleration_variance=0.1, engine=e), id="KF+MGEKF-paper-like"),
@@ -27,7 +27,7 @@ TRACKERS = [
 def reports():
     """4 runs, 1500 scans: active [0, 300) and [900, 1000) s, the target turning at 600 s; the
     second half of the scans 2 s apart (a second set of models)."""
-    _, r = _reports(duration=1500.0, active=((0.0, 300.0), (900.0, 1000.0)), bearing_std_deg=1.0, range_std=10.0,
+    _, r = sonar_reports(duration=1500.0, active=((0.0, 300.0), (900.0, 1000.0)), bearing_std_deg=1.0, range_std=10.0,
                     runs=4, turns=((600.0, 45.0),), filter_bearing_std=np.radians(1.0), filter_range_std=10.0, seed=3)
     dt = np.where(np.arange(r.time.size - 1) < 750, 1.0, 2.0)
     return dataclasses.replace(r, time=np.concatenate([[0.0], np.cumsum(dt)]))
@@ -101,7 +101,7 @@ def test_the_kernel_is_loaded_before_the_clock_with_the_one_specialisation_every
     import subprocess
     import sys
 
-    from tests.conftest import ROOT
+    from tests.helpers.config import ROOT
 
     path = tmp_path / "reports.pkl"
     path.write_bytes(pickle.dumps(reports))

@@ -12,7 +12,7 @@ import pytest
 
 from filters.input_estimation import LOSMIE, InertialMIE
 from pipeline.run.runner import prepare
-from tests.conftest import composed
+from tests.helpers.config import composed
 
 
 def _inputs(experiment: str, runs: int, *overrides: str):

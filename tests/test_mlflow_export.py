@@ -10,7 +10,7 @@ import shutil
 import polars as pl
 import pytest
 
-from tests.extras import require_extra
+from tests.helpers.extras import require_extra
 
 require_extra("mlflow", "mlflow", "sqlalchemy", "alembic")
 
@@ -18,7 +18,7 @@ import mlflow  # noqa: E402
 
 from pipeline.results import mlflow_export, tracking  # noqa: E402
 from pipeline.results.cli import main as query_main  # noqa: E402
-from tests.test_pipeline import run_in_process  # noqa: E402
+from tests.helpers.runs import run_in_process  # noqa: E402
 
 RUN = ("experiment=ao_vsimm_s1", "mc.runs=3", "scenario.steps=30", "variants=[fsimm,ao_vsimm]")
 

@@ -14,7 +14,8 @@ from pipeline.studies.multitarget.adapter import MultiTargetStudy, detection_set
 from pipeline.studies.multitarget.scenario import (CrossingTurns, LinearBirthDeath, alive, births_and_deaths,
                                                    turn_transition)
 from pipeline.studies.multitarget.sensor import ClutteredPositions
-from tests.conftest import CONF, scenario as built_scenario
+from tests.helpers.config import CONF
+from tests.helpers.filter_inputs import scenario as built_scenario
 
 
 @pytest.fixture(scope="module")
@@ -211,7 +212,7 @@ def test_reduced_vo_vo_run_scores_reports_and_records(tmp_path):
     """A reduced-size reproduction: 2 runs of the first 25 scans (three targets, then six) through every stage."""
     pytest.importorskip("stonesoup")
     from pipeline.results.report import write_reports
-    from tests.test_pipeline import run_in_process
+    from tests.helpers.runs import run_in_process
     _, ctx = run_in_process(tmp_path, "multitarget_vo_vo", "experiment=multitarget_vo_vo", "mc.runs=2",
                                   "scenario.scans=25", "variants=[gnn,jpda,gmphd,ss_gmphd]")
     run_dir = ctx.run_dir

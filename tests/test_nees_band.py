@@ -58,8 +58,8 @@ def test_the_band_is_in_the_metrics_and_beside_the_nees_in_the_recording(tmp_pat
     from hydra import compose, initialize_config_dir
 
     from pipeline.run.runner import RunContext, run_experiment
-    from tests.conftest import CONF
-    from tests.rrd_reading import entity_index, read_chunks
+    from tests.helpers.config import CONF
+    from tests.helpers.rrd_reading import entity_index, read_chunks
 
     overrides = ["mc.runs=3", "scenario.steps=20", "variants=[fsimm]"]
     with initialize_config_dir(version_base="1.3", config_dir=str(CONF)):

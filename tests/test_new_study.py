@@ -71,7 +71,7 @@ def test_the_scaffolded_study_runs_every_stage_and_its_report_target_passes(tmp_
     assert command[:3] == ["python", "-m", "pipeline"]
     args = [a.strip("'") for a in command[3:]]
     proc = run_pipeline(*args, "mc.runs=4", "record.enabled=false", artifacts=tmp_path / "artifacts",
-                        cwd=tmp_path, paths=[tmp_path])
+                        cwd=tmp_path, paths=[tmp_path], timeout=300)
     assert proc.returncode == 0, proc.stderr[-2000:]
     [run] = (tmp_path / "artifacts" / "runs" / "my_study").iterdir()
     summary = pl.read_parquet(run / "summary.parquet")

@@ -86,8 +86,8 @@ def test_every_variant_of_studies_001_and_000_has_nis_with_its_band_in_the_metri
     from hydra import compose, initialize_config_dir
 
     from pipeline.run.runner import RunContext, run_experiment
-    from tests.conftest import CONF
-    from tests.rrd_reading import entity_index, read_chunks
+    from tests.helpers.config import CONF
+    from tests.helpers.rrd_reading import entity_index, read_chunks
 
     overrides = [f"experiment={experiment}", "mc.runs=4", f"paths.artifacts={tmp_path}"]
     with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):

@@ -198,7 +198,7 @@ def test_recording_has_a_nis_tab_with_each_variant_and_its_band(tmp_path: Path):
 
     from pipeline.studies.async_bias.recording import write_bias_recording
     from pipeline.evaluation.evaluate import metrics_frame
-    from tests.rrd_reading import entity_index, read_chunks, temporal
+    from tests.helpers.rrd_reading import entity_index, read_chunks, temporal
 
     truth, reports = _study_case(runs=2, targets=3, reports=10)
     keys = ("local", "proposed", "exx")
@@ -235,9 +235,9 @@ def test_recording_has_a_nis_tab_with_each_variant_and_its_band(tmp_path: Path):
 # ---- (c) through the runner ---------------------------------------------------------------------------
 
 def test_a_tiny_async_bias_run_has_nis_metrics_for_every_variant(tmp_path: Path):
-    from tests.test_study002_pipeline import run_study
+    from tests.helpers.runs import run_study
 
-    out, _ = run_study(tmp_path, "nis", "scenario.duration=10", "mc.runs=2")
+    out, _ = run_study(tmp_path, "nis", "scenario.duration=10", "mc.runs=2", experiment="async_bias")
     metrics = out.metrics
     for key in ("local", "proposed", "exx"):
         have = set(metrics.filter(metrics["variant_key"] == key)["series"].to_list())

@@ -16,8 +16,8 @@ from filters.mgekf import (
 )
 from pipeline.run.runner import RunContext, run_experiment
 from pipeline.evaluation.evaluate import nis_metrics
-from tests.conftest import CONF
-from tests.rrd_reading import entity_index, read_chunks, temporal
+from tests.helpers.config import CONF
+from tests.helpers.rrd_reading import entity_index, read_chunks, temporal
 
 BEARING_STD, RANGE_STD = 0.01, 10.0                      # [rad], [m] for the single-step cases
 

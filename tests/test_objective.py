@@ -15,7 +15,8 @@ import yaml
 from pipeline.errors import ConfigError
 from pipeline.launch.objective import BEST_CONFIG, objective_value, trial_result
 from pipeline.run.runner import prepare
-from tests.test_pipeline import cli, compose_cfg
+from tests.helpers.config import composed_config
+from tests.helpers.processes import run_pipeline
 
 OBJECTIVE = "objective={variant: vsimm, series: acceleration_rmse_x, window: after_switch, direction: minimize}"
 
@@ -29,7 +30,7 @@ OBJECTIVE = "objective={variant: vsimm, series: acceleration_rmse_x, window: aft
     ("objective.direction=lower", "objective.direction: 'lower'", "['minimize', 'maximize']"),
 ])
 def test_a_bad_objective_is_refused_before_any_stage_in_one_paragraph(override, key, allowed):
-    cfg = compose_cfg("experiment=ao_vsimm_s2", OBJECTIVE, override, "paths.artifacts=/nonexistent-artifacts")
+    cfg = composed_config("experiment=ao_vsimm_s2", OBJECTIVE, override, "paths.artifacts=/nonexistent-artifacts")
     with pytest.raises(ConfigError) as info:
         prepare(cfg)
     message = str(info.value)
@@ -37,7 +38,7 @@ def test_a_bad_objective_is_refused_before_any_stage_in_one_paragraph(override, 
 
 
 def test_an_objective_of_a_variant_left_out_by_variants_is_refused():
-    cfg = compose_cfg("experiment=ao_vsimm_s2", OBJECTIVE, "variants=[fsimm]", "paths.artifacts=/nonexistent-artifacts")
+    cfg = composed_config("experiment=ao_vsimm_s2", OBJECTIVE, "variants=[fsimm]", "paths.artifacts=/nonexistent-artifacts")
     with pytest.raises(ConfigError, match=r"objective.variant: 'vsimm' .* one of \['fsimm'\] .*variants=\['fsimm'\]"):
         prepare(cfg)
 
@@ -58,8 +59,8 @@ def test_the_value_is_the_summary_row_and_nan_is_no_trial_value():
 @pytest.mark.full
 def test_a_multirun_with_an_objective_writes_the_best_jobs_config_beside_the_sweep(tmp_path):
     # the basic sweeper: best_config.yaml comes from this project's callback, whatever the sweeper
-    proc = cli(tmp_path, "-m", "experiment=ao_vsimm_s2", OBJECTIVE, "variants=[vsimm]", "mc.runs=2",
-               "record.enabled=false", "filters.vsimm.t1_mu=0.6,0.85", "filters.vsimm.t2_mu=1.5")
+    proc = run_pipeline("-m", "experiment=ao_vsimm_s2", OBJECTIVE, "variants=[vsimm]", "mc.runs=2",
+                        "record.enabled=false", "filters.vsimm.t1_mu=0.6,0.85", "filters.vsimm.t2_mu=1.5", artifacts=tmp_path)
     assert proc.returncode == 0, proc.stderr[-3000:]
     (sweep,) = (tmp_path / "multirun").iterdir()
     values = {}
@@ -86,7 +87,7 @@ def test_a_job_config_reads_back_as_pyyaml_reads_it(tmp_path):
 
     from pipeline.storage.store import read_yaml
 
-    cfg = compose_cfg("experiment=sonobuoy_case2", OBJECTIVE, "paths.artifacts=/tmp/x")
+    cfg = composed_config("experiment=sonobuoy_case2", OBJECTIVE, "paths.artifacts=/tmp/x")
     written = OmegaConf.to_yaml(cfg) + ("tricky: {small: 1.0e-06, text_number: '1e-3', yes_text: 'yes', on: true, "
                                         "none: null, date_like: '2026-12-02', octal_like: '010', inf: .inf}\n")
     path = tmp_path / "config.yaml"

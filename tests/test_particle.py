@@ -9,12 +9,11 @@ import pytest
 
 from filters.kalman import kalman_filter
 from filters.particle import (
-    BearingLikelihood, BearingsEKF, BuoyReports, MultipleModelParticleFilter, bearing_jacobian, bearings,
+    BearingLikelihood, BearingsEKF, MultipleModelParticleFilter, bearing_jacobian, bearings,
     coordinated_turn, filter_jump_markov, liu_west, mode_bearings, predicted_positions, systematic_resample, turn_rates,
     weighted_moments, wrap,
 )
-from pipeline.studies.sonobuoy.scenario import SonobuoyField
-from pipeline.studies.sonobuoy.sensor import SonobuoyBearings
+from tests.helpers.filter_inputs import buoy_reports
 
 
 def test_systematic_resampling_keeps_the_weights_expectation():
@@ -159,19 +158,8 @@ def test_bearing_jacobian_matches_finite_differences():
         np.testing.assert_allclose(H[:, :, j], diff, atol=1e-9, rtol=1e-5)
 
 
-def _reports(runs=4, duration=300.0, clutter=False, seed=0):
-    truth = SonobuoyField(duration=duration).generate(runs, seed)
-    sensor = SonobuoyBearings(miss_probability=0.2 if clutter else 0.0, clutter_probability=0.5 if clutter else 0.0)
-    detections = sensor.measure(truth, seed)
-    prior_std = np.array([1000.0, 1000.0, 2.0, 2.0] + [100.0, 100.0, 0.05, 0.05] * 4)
-    prior_mean = truth.state[:, 0, 0] + np.random.default_rng(seed).standard_normal((runs, 20)) * prior_std
-    return truth, BuoyReports(detections.time, detections.z[..., 0], np.asarray(sensor.observer_position),
-                              np.asarray(sensor.nominal_std), np.asarray(sensor.clutter_std),
-                              float(sensor.clutter_probability), prior_mean, prior_std, seed)
-
-
 def test_filters_run_and_are_invariant_to_chunking_threads_and_batch():
-    truth, reports = _reports(runs=3, duration=100.0, clutter=True)
+    truth, reports = buoy_reports(runs=3, duration=100.0, clutter=True)
     base = MultipleModelParticleFilter(particles=200).run(reports)
     chunked = MultipleModelParticleFilter(particles=200, chunk_runs=1, workers=2).run(reports)
     np.testing.assert_array_equal(base.state, chunked.state)
@@ -210,7 +198,7 @@ def test_the_filters_report_their_scans_and_reporting_changes_nothing(chunk_runs
     scan of a chunk counts its share of the runs), whatever the chunking and threads; the EKF counts
     its scans. The estimates are bit-identical with and without a listener."""
     from filters.progress import listening
-    _, reports = _reports(runs=3, duration=100.0, clutter=True)
+    _, reports = buoy_reports(runs=3, duration=100.0, clutter=True)
     K = reports.time.size
     for make in (lambda: MultipleModelParticleFilter(particles=100, chunk_runs=chunk_runs, workers=workers),
                  lambda: BearingsEKF()):
@@ -227,7 +215,7 @@ def test_the_filters_report_their_scans_and_reporting_changes_nothing(chunk_runs
 
 
 def test_filters_follow_the_target_on_a_short_clean_run():
-    truth, reports = _reports(runs=4, duration=600.0)
+    truth, reports = buoy_reports(runs=4, duration=600.0)
     for estimator in (MultipleModelParticleFilter(particles=500, max_acceleration=0.001, target_sigma=0.005),
                       BearingsEKF(target_sigma=0.005)):
         est = estimator.run(reports)

@@ -15,7 +15,7 @@ from numba import njit
 
 from filters.particle import kernel
 from filters.particle import MultipleModelParticleFilter
-from tests.test_particle import _reports
+from tests.helpers.filter_inputs import buoy_reports
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -66,7 +66,7 @@ def test_a_scan_equals_the_numpy_loop_to_float32_rounding(auxiliary, lw_h, clutt
     ESS and NIS agree with the numpy loop's to float32 rounding (the bearings and likelihoods are
     float32 in both; the kernel's atan2/exp/log are its own polynomials). a_m = 0.2 m/s^2 turns
     by up to 2 rad a scan: the turns' sines from libm instead of the series."""
-    _, reports = _reports(runs=4, duration=10.0, clutter=clutter)
+    _, reports = buoy_reports(runs=4, duration=10.0, clutter=clutter)
     fast, slow = (MultipleModelParticleFilter(particles=300, auxiliary=auxiliary, lw_h=lw_h, max_acceleration=a_m,
                                               snapshot_particles=20, engine=engine).run(reports)
                   for engine in ("numba", "numpy"))
@@ -88,7 +88,7 @@ def test_a_scan_equals_the_numpy_loop_to_float32_rounding(auxiliary, lw_h, clutt
 
 @pytest.mark.parametrize("auxiliary, lw_h", [(True, 0.3), (False, 0.0)])
 def test_results_do_not_depend_on_chunks_threads_or_batch(auxiliary, lw_h):
-    _, reports = _reports(runs=5, duration=60.0, clutter=True)
+    _, reports = buoy_reports(runs=5, duration=60.0, clutter=True)
 
     def run(**kwargs):
         return MultipleModelParticleFilter(particles=150, auxiliary=auxiliary, lw_h=lw_h, snapshot_particles=10,
@@ -107,7 +107,7 @@ def test_results_do_not_depend_on_chunks_threads_or_batch(auxiliary, lw_h):
 
 
 def test_the_compiled_scan_is_cached_where_it_can_be_written_and_a_new_process_loads_it():
-    _, reports = _reports(runs=1, duration=10.0)
+    _, reports = buoy_reports(runs=1, duration=10.0)
     MultipleModelParticleFilter(particles=50).run(reports)
     MultipleModelParticleFilter(particles=50, auxiliary=False, lw_h=0.0).run(reports)
     # one compiled version serves both filters, the draws' check and any size: a second would be
@@ -115,10 +115,10 @@ def test_the_compiled_scan_is_cached_where_it_can_be_written_and_a_new_process_l
     assert len(kernel.scan.signatures) == 1, kernel.scan.signatures
     path = kernel.scan.stats.cache_path
     assert os.access(path, os.W_OK) and any(name.startswith("kernel.scan-") for name in os.listdir(path))
-    code = ("from tests.test_particle import _reports\n"
+    code = ("from tests.helpers.filter_inputs import buoy_reports\n"
             "from filters.particle import MultipleModelParticleFilter\n"
             "from filters.particle import kernel\n"
-            "MultipleModelParticleFilter(particles=50).run(_reports(runs=1, duration=10.0)[1])\n"
+            "MultipleModelParticleFilter(particles=50).run(buoy_reports(runs=1, duration=10.0)[1])\n"
             "print(sum(kernel.scan.stats.cache_hits.values()), sum(kernel.scan.stats.cache_misses.values()))\n")
     out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, env=dict(os.environ, PYTHONPATH=str(ROOT)),
                          capture_output=True, text=True, check=True).stdout.split()
@@ -132,7 +132,7 @@ def test_the_inline_draws_are_numpys_numbers_and_the_fallback_gives_the_same_res
     from filters.particle import reference as particle
 
     assert particle._inline_draws_match()
-    _, reports = _reports(runs=3, duration=60.0, clutter=True)
+    _, reports = buoy_reports(runs=3, duration=60.0, clutter=True)
     for auxiliary in (True, False):
         inline = MultipleModelParticleFilter(particles=120, auxiliary=auxiliary).run(reports)
         monkeypatch.setattr(particle, "_inline_draws_match", lambda: False)

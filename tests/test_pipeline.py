@@ -4,38 +4,18 @@ from __future__ import annotations
 
 import json
 import logging
-import os
-import subprocess
-import sys
 from pathlib import Path
 
 import polars as pl
 import pytest
 
 from pipeline.errors import ConfigError
-from pipeline.run.runner import RunContext, run_experiment
-from tests.conftest import ROOT, composed_config
-
-
-compose_cfg = composed_config          # the name the other test files import
-
-
-def run_in_process(tmp_path: Path, name: str, *overrides: str):
-    cfg = compose_cfg(f"paths.artifacts={tmp_path}", "record.enabled=false", *overrides)
-    ctx = RunContext(tmp_path / "runs" / name, tmp_path, list(overrides))
-    return run_experiment(cfg, ctx), ctx
-
-
-def cli(tmp_path: Path, *args: str, timeout: int = 120) -> subprocess.CompletedProcess:
-    env = {**os.environ, "HYDRA_FULL_ERROR": "0", "PYTHONPATH": str(ROOT)}
-    flags = [a for a in args if a.startswith("-")]
-    overrides = [a for a in args if not a.startswith("-")]
-    return subprocess.run([sys.executable, "-m", "pipeline", *flags, f"paths.artifacts={tmp_path}", *overrides], cwd=tmp_path,
-                          capture_output=True, text=True, timeout=timeout, env=env)
+from tests.helpers.processes import ROOT, run_pipeline
+from tests.helpers.runs import run_in_process
 
 
 def test_default_job_writes_every_file(tmp_path):
-    proc = cli(tmp_path, "mc.runs=4")
+    proc = run_pipeline("mc.runs=4", artifacts=tmp_path)
     assert proc.returncode == 0, proc.stderr
     (run_dir,) = (tmp_path / "runs" / "ao_vsimm_s1").iterdir()
     for name in ("config.yaml", "truth.parquet", "detections.parquet", "estimates/fsimm.parquet",
@@ -147,12 +127,12 @@ def test_bad_input_is_rejected_with_the_key_the_value_and_what_is_allowed(tmp_pa
 
 
 def test_bad_input_on_the_command_line_gives_one_paragraph_no_traceback(tmp_path):
-    proc = cli(tmp_path, "mc.runs=0")
+    proc = run_pipeline("mc.runs=0", artifacts=tmp_path)
     assert proc.returncode == 2
     assert "error: mc.runs: 0 is not allowed" in proc.stderr and "Traceback" not in proc.stderr
     assert not (tmp_path / "runs").exists()          # refused before any work: nothing is written
 
-    proc = cli(tmp_path, "experiment=ao_vsimm_s9")
+    proc = run_pipeline("experiment=ao_vsimm_s9", artifacts=tmp_path)
     assert proc.returncode != 0 and "Traceback" not in proc.stderr
     assert "Could not find 'experiment/ao_vsimm_s9'" in proc.stderr and "ao_vsimm_s2" in proc.stderr
 
@@ -164,7 +144,7 @@ def _sweep_summaries(root: Path) -> pl.DataFrame:
 
 @pytest.mark.full
 def test_multirun_sweep_yields_one_summary_per_job_with_the_swept_value(tmp_path):
-    proc = cli(tmp_path, "-m", "filters.vsimm.t1_mu=0.8,0.85", "mc.runs=3", "scenario.steps=60", "record.enabled=false")
+    proc = run_pipeline("-m", "filters.vsimm.t1_mu=0.8,0.85", "mc.runs=3", "scenario.steps=60", "record.enabled=false", artifacts=tmp_path)
     assert proc.returncode == 0, proc.stderr
     from pipeline.results.query import query
     rows = query("""SELECT "filters.vsimm.t1_mu" AS t1_mu, value FROM summary
@@ -178,8 +158,8 @@ def test_multirun_sweep_yields_one_summary_per_job_with_the_swept_value(tmp_path
 
 @pytest.mark.full
 def test_a_failed_job_is_recorded_and_the_others_stay_queryable(tmp_path):
-    proc = cli(tmp_path, "-m", "mc.runs=2,0", "scenario.steps=40", "record.enabled=false",
-               "hydra/launcher=joblib", "hydra.launcher.n_jobs=2")
+    proc = run_pipeline("-m", "mc.runs=2,0", "scenario.steps=40", "record.enabled=false",
+                        "hydra/launcher=joblib", "hydra.launcher.n_jobs=2", artifacts=tmp_path)
     assert proc.returncode == 1                     # the sweep reports its failure ...
     assert "1 ok, 1 failed" in proc.stderr and "mc.runs: 0 is not allowed" in proc.stderr
     df = _sweep_summaries(tmp_path)                 # ... and both jobs are in the tables
@@ -205,7 +185,7 @@ def test_every_experiment_file_runs_end_to_end(tmp_path):
     """Multiruns over glob(*): every experiment in conf/experiment composes, runs and is queryable."""
     listed = ",".join(SHORTENED)
     for sweep in ([f"experiment=glob(*,exclude=[{listed}])"], [f"experiment=glob([{listed}])", *SHORT]):
-        proc = cli(tmp_path, "-m", *sweep, "mc.runs=2", "record.enabled=false", timeout=300)
+        proc = run_pipeline("-m", *sweep, "mc.runs=2", "record.enabled=false", timeout=300, artifacts=tmp_path)
         assert proc.returncode == 0, proc.stderr[-2000:]
     from pipeline.results.query import query
     experiments = sorted(p.stem for p in (ROOT / "conf" / "experiment").glob("*.yaml"))

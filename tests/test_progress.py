@@ -250,7 +250,7 @@ def _assert_same(a, b, where: str) -> None:
 
 
 def _smoke_cases() -> list:
-    from tests.conftest import smoke_experiments
+    from tests.helpers.config import smoke_experiments
     return [pytest.param(name, overrides, id=name) for name, overrides in smoke_experiments()]
 
 

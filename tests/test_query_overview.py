@@ -126,7 +126,7 @@ def test_tables_config_markdown_and_csv(root, capsys):
 
 
 def test_an_old_summary_without_the_metric_column_lists_its_series(tmp_path, capsys):
-    from tests.test_query import make_tree
+    from tests.helpers.artifacts_tree import make_tree
     root = make_tree(tmp_path / "artifacts")
     with pytest.warns(QueryWarning):                                 # the tree's truncated file
         frames = tables_overview(root)

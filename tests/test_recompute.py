@@ -6,8 +6,8 @@ import polars as pl
 import pytest
 
 from pipeline.results.recompute import main
-from tests.conftest import smoke_experiments
-from tests.test_pipeline import run_in_process
+from tests.helpers.config import smoke_experiments
+from tests.helpers.runs import run_in_process
 
 
 @pytest.mark.parametrize("experiment, smoke", smoke_experiments())

@@ -424,8 +424,8 @@ def test_3d_record_runs_validated(case3d, tmp_path, bad):
 # ---- issue 19: what the viewer shows (checked on the blueprint and the data, without pixels) ------
 from pipeline.views.blueprints import title_chars                                     # noqa: E402
 from pipeline.views.colours import model_colour, variant_colour                            # noqa: E402
-from tests.rrd_reading import (blueprint_views, capture_blueprint, legend_visible, read_chunks,  # noqa: E402
-                               rows as chunk_rows, up_to_now)
+from tests.helpers.rrd_reading import (blueprint_views, capture_blueprint, legend_visible, read_chunks,  # noqa: E402
+                                       rows as chunk_rows, up_to_now)
 
 
 @pytest.fixture(scope="module")

@@ -16,7 +16,7 @@ from pipeline.data import Detections, Truth
 from pipeline.studies.async_bias.recording import BIAS_DISPLAY, write_bias_recording
 from pipeline.studies.async_bias.adapter import bias_study_metrics
 from pipeline.evaluation.evaluate import metrics_frame
-from tests.rrd_reading import assert_complete_recording, entity_index, read_chunks, rows, temporal
+from tests.helpers.rrd_reading import assert_complete_recording, entity_index, read_chunks, rows, temporal
 
 RUNS, TARGETS = 2, 3
 RECORD = [0]
@@ -189,7 +189,7 @@ def test_out_of_range_record_run_raises(case, tmp_path, bad):
 
 
 # ---- issue 19: what the viewer shows (the blueprint and the data, without pixels) ---------------
-from tests.recording_checks import (blueprint, recording_variants, write_recording,  # noqa: E402,F401
-                                    test_every_title_fits_its_view, test_no_viewer_warning_while_writing_quiet,
-                                    test_plots_have_no_legend_and_the_key_names_the_variants,
-                                    test_tracks_are_drawn_up_to_now)
+from tests.helpers.recording_checks import (blueprint, recording_variants, write_recording,  # noqa: E402,F401
+                                            test_every_title_fits_its_view, test_no_viewer_warning_while_writing_quiet,
+                                            test_plots_have_no_legend_and_the_key_names_the_variants,
+                                            test_tracks_are_drawn_up_to_now)

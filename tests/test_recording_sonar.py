@@ -16,7 +16,7 @@ from pipeline.studies.sonar.sensor import ActivePassiveSonar
 from pipeline.evaluation.evaluate import metrics_frame
 from pipeline.contract import RecordingInputs
 from pipeline.studies.sonar.adapter import SonarStudy
-from tests.rrd_reading import assert_complete_recording, entity_index, read_chunks, rows, temporal
+from tests.helpers.rrd_reading import assert_complete_recording, entity_index, read_chunks, rows, temporal
 
 RUNS, RECORD = 2, [1]
 VARIANTS = {"kf_mgekf": "KF + MGEKF", "only_mgekf": "only MGEKF"}
@@ -177,11 +177,11 @@ def test_truth_without_ownship_raises(case, tmp_path):
 
 
 # ---- issue 19: what the viewer shows (the blueprint and the data, without pixels) ---------------
-from tests.recording_checks import (blueprint, recording_variants, write_recording,  # noqa: E402,F401
-                                    test_every_title_fits_its_view, test_no_viewer_warning_while_writing_quiet,
-                                    test_plots_have_no_legend_and_the_key_names_the_variants,
-                                    test_tracks_are_drawn_up_to_now)
-from tests.rrd_reading import blueprint_views  # noqa: E402
+from tests.helpers.recording_checks import (blueprint, recording_variants, write_recording,  # noqa: E402,F401
+                                            test_every_title_fits_its_view, test_no_viewer_warning_while_writing_quiet,
+                                            test_plots_have_no_legend_and_the_key_names_the_variants,
+                                            test_tracks_are_drawn_up_to_now)
+from tests.helpers.rrd_reading import blueprint_views  # noqa: E402
 
 
 def test_sonar_mode_timeline_has_short_labels_and_room(blueprint, chunks):

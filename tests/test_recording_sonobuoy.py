@@ -18,7 +18,7 @@ from pipeline.studies.sonobuoy.sensor import SonobuoyBearings
 from pipeline.evaluation.evaluate import metrics_frame
 from pipeline.contract import RecordingInputs
 from pipeline.studies.sonobuoy.adapter import MODE_NAMES, SonobuoyStudy
-from tests.rrd_reading import assert_complete_recording, entity_index, read_chunks, rows, temporal
+from tests.helpers.rrd_reading import assert_complete_recording, entity_index, read_chunks, rows, temporal
 
 RUNS, RECORD = 2, [1]
 K, P = 15, 30
@@ -289,11 +289,11 @@ def test_no_viewer_warning_while_writing(case, tmp_path, capfd):
 
 
 # ---- issue 19: what the viewer shows (the blueprint and the data, without pixels) ---------------
-from tests.recording_checks import (blueprint, recording_variants, write_recording,  # noqa: E402,F401
-                                    test_every_title_fits_its_view, test_no_viewer_warning_while_writing_quiet,
-                                    test_plots_have_no_legend_and_the_key_names_the_variants,
-                                    test_tracks_are_drawn_up_to_now)
-from tests.rrd_reading import blueprint_views  # noqa: E402
+from tests.helpers.recording_checks import (blueprint, recording_variants, write_recording,  # noqa: E402,F401
+                                            test_every_title_fits_its_view, test_no_viewer_warning_while_writing_quiet,
+                                            test_plots_have_no_legend_and_the_key_names_the_variants,
+                                            test_tracks_are_drawn_up_to_now)
+from tests.helpers.rrd_reading import blueprint_views  # noqa: E402
 
 
 def test_mode_probabilities_side_by_side(blueprint):

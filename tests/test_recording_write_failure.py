@@ -18,7 +18,7 @@ from pathlib import Path
 
 import pytest
 
-# full tier (tests/conftest.py): jobs under a file-size limit in their own processes
+# full tier (tests/helpers/tiers.py): jobs under a file-size limit in their own processes
 pytestmark = pytest.mark.full
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -16,7 +16,8 @@ import pytest
 from pipeline.errors import ConfigError
 from pipeline.evaluation.faults import FAULTS, fault_flags, fault_summary
 from pipeline.storage.store import inside
-from tests.test_pipeline import cli, run_in_process
+from tests.helpers.processes import run_pipeline
+from tests.helpers.runs import run_in_process
 
 
 def test_a_never_finite_run_is_flagged_not_taken_for_no_track_yet():
@@ -43,8 +44,8 @@ def test_a_variant_key_cannot_name_a_path_outside_the_run(tmp_path):
     (conf / "escape.yaml").write_text(
         "# @package _global_\ndefaults:\n  - /experiment/ao_vsimm_s1\n  - _self_\n"
         "filters:\n  \"../../../../escaped\":\n    _target_: filters.imm.FSIMM\n    models: ${models}\n    name: ESC\n")
-    proc = cli(tmp_path, f"--config-dir={tmp_path / 'conf_extra'}", "experiment=escape", "mc.runs=2",
-               "scenario.steps=20", "record.enabled=false")
+    proc = run_pipeline(f"--config-dir={tmp_path / 'conf_extra'}", "experiment=escape", "mc.runs=2",
+                        "scenario.steps=20", "record.enabled=false", artifacts=tmp_path)
     assert proc.returncode == 2 and "variant key(s) ['../../../../escaped'] are not allowed" in proc.stderr
     assert not list(tmp_path.rglob("escaped*")) and not list(Path("/").glob("escaped.parquet"))
     with pytest.raises(ValueError, match="resolves outside"):
@@ -282,11 +283,11 @@ def test_bad_paths_and_keys_get_a_paragraph_and_exit_2(tmp_path, args, says):
 
 def test_a_folder_where_a_cache_file_belongs_is_named(tmp_path):
     """Item 13: a folder in place of a cache file gave IsADirectoryError's traceback."""
-    assert cli(tmp_path, "mc.runs=2", "scenario.steps=20", "record.enabled=false").returncode == 0
+    assert run_pipeline("mc.runs=2", "scenario.steps=20", "record.enabled=false", artifacts=tmp_path).returncode == 0
     (cached,) = (tmp_path / "cache" / "scenario").glob("*.parquet")
     cached.unlink()
     cached.mkdir()
-    proc = cli(tmp_path, "mc.runs=2", "scenario.steps=20", "record.enabled=false")
+    proc = run_pipeline("mc.runs=2", "scenario.steps=20", "record.enabled=false", artifacts=tmp_path)
     assert proc.returncode == 2 and "Traceback" not in proc.stderr
     assert f"{cached} is a folder where the pipeline keeps a file; move it out of the way" in proc.stderr
 
@@ -295,10 +296,10 @@ def test_a_folder_where_a_cache_file_belongs_is_named(tmp_path):
 
 def test_a_refused_single_run_leaves_no_folder_but_a_refused_sweep_job_is_listed(tmp_path):
     """Item 16: a refused config still created a run folder with a summary.parquet."""
-    proc = cli(tmp_path, "mc.runs=0")
+    proc = run_pipeline("mc.runs=0", artifacts=tmp_path)
     assert proc.returncode == 2 and not (tmp_path / "runs").exists()
     assert not [p for p in tmp_path.rglob("*") if p.is_file()]
-    proc = cli(tmp_path, "-m", "mc.runs=0", "record.enabled=false")
+    proc = run_pipeline("-m", "mc.runs=0", "record.enabled=false", artifacts=tmp_path)
     (job,) = (tmp_path / "multirun").glob("*/0")
     assert json.loads((job / "status.json").read_text())["status"] == "failed"
 
@@ -332,7 +333,7 @@ def test_a_job_records_its_process(tmp_path):
 def test_a_report_on_a_sweep_with_a_failed_job_reports_the_others_and_says_why(tmp_path):
     """Item 17: pipeline.results.report wrote job 0, then exited 2 on the failed job and wrote no index.md."""
     from pipeline.results.report import main as report_main
-    proc = cli(tmp_path, "-m", "mc.runs=2,0,3", "scenario.steps=20", "record.enabled=false")
+    proc = run_pipeline("-m", "mc.runs=2,0,3", "scenario.steps=20", "record.enabled=false", artifacts=tmp_path)
     assert proc.returncode == 1 and "2 ok, 1 failed" in proc.stderr
     (sweep,) = (tmp_path / "multirun").iterdir()
     assert report_main([str(sweep)]) == 0

@@ -13,8 +13,8 @@ from pipeline.errors import ConfigError
 def _job(tmp_path: Path, name: str, *overrides: str):
     """(cfg, ctx) of an in-process single run ``runs/<name>`` (record off), as ``python -m pipeline`` makes them."""
     from pipeline.run.runner import RunContext
-    from tests.test_pipeline import compose_cfg
-    cfg = compose_cfg(f"paths.artifacts={tmp_path}", "record.enabled=false", *overrides)
+    from tests.helpers.config import composed_config
+    cfg = composed_config(f"paths.artifacts={tmp_path}", "record.enabled=false", *overrides)
     return cfg, RunContext(tmp_path / "runs" / name, tmp_path, list(overrides))
 
 
@@ -45,8 +45,8 @@ def test_a_plus_key_that_nothing_reads_is_refused_with_the_close_names(tmp_path,
 
 def test_a_plus_key_is_refused_on_the_command_line_with_exit_2(tmp_path):
     """Item 20 as the user meets it: exit 2, one paragraph, no traceback, no run folder left."""
-    from tests.test_pipeline import cli
-    proc = cli(tmp_path, "+mc.rnus=5", "record.enabled=false")
+    from tests.helpers.processes import run_pipeline
+    proc = run_pipeline("+mc.rnus=5", "record.enabled=false", artifacts=tmp_path)
     assert proc.returncode == 2, proc.stderr
     assert "error: +mc.rnus=5: 'mc' has no key 'rnus' that anything reads" in proc.stderr
     assert "Traceback" not in proc.stderr
@@ -59,7 +59,7 @@ def _explained(override: str) -> str:
     from hydra.errors import HydraException
 
     from pipeline.launch.refusals import explain
-    from tests.conftest import CONF
+    from tests.helpers.config import CONF
     with initialize_config_dir(version_base="1.3", config_dir=str(CONF)):
         with pytest.raises(HydraException) as info:
             compose("config", overrides=[override])
@@ -99,7 +99,7 @@ def test_the_fixed_keys_are_conf_config_yamls_and_every_experiments_top_level():
     from omegaconf import OmegaConf
 
     from pipeline.launch.refusals import FIXED_KEYS
-    from tests.conftest import CONF, composed
+    from tests.helpers.config import composed, CONF
     base = OmegaConf.load(CONF / "config.yaml")
     for node, keys in FIXED_KEYS.items():
         if node:
@@ -137,11 +137,11 @@ def test_an_experiment_name_that_escapes_or_is_empty_is_refused_before_hydra_mak
     """Item 8 on the command line: ``experiment_name=../../escaped`` wrote its run folder two levels
     above paths.artifacts/runs, ``experiment_name=''`` ran unlabelled. Before: exit 0 and the folders;
     after: exit 2, one paragraph, no folder anywhere."""
-    from tests.test_pipeline import cli
+    from tests.helpers.processes import run_pipeline
     artifacts = tmp_path / "a" / "b"
     for name, folder in (("../../escaped", tmp_path / "a" / "escaped"), ("''", artifacts / "runs")):
-        proc = cli(tmp_path, f"paths.artifacts={artifacts}", f"experiment_name={name}", "mc.runs=2",
-                   "scenario.steps=20", "record.enabled=false")
+        proc = run_pipeline(f"paths.artifacts={artifacts}", f"experiment_name={name}", "mc.runs=2",
+                            "scenario.steps=20", "record.enabled=false", artifacts=tmp_path)
         assert proc.returncode == 2, proc.stderr
         assert "error: experiment_name: " in proc.stderr and "Traceback" not in proc.stderr
         assert len(proc.stderr.strip().splitlines()) == 1, proc.stderr
@@ -154,14 +154,14 @@ def test_a_run_folder_that_holds_another_folders_files_is_refused_and_untouched(
     exit 0 and config.yaml replaced; after: exit 2 naming the files, every byte there as it was. A new
     folder and an earlier run's folder (run into again, as after a kill) still run, and what a run writes
     is RUN_FILES (besides its log)."""
-    from tests.test_pipeline import cli
+    from tests.helpers.processes import run_pipeline
     other = tmp_path / "project"
     (other / "conf").mkdir(parents=True)
     (other / "config.yaml").write_text("theirs: 1\n")
     (other / "summary.parquet").write_bytes(b"not ours")
     (other / "conf" / "x.yaml").write_text("x: 1\n")
     before = {p: p.read_bytes() for p in other.rglob("*") if p.is_file()}
-    proc = cli(tmp_path, f"hydra.run.dir={other}", "mc.runs=2", "scenario.steps=20")
+    proc = run_pipeline(f"hydra.run.dir={other}", "mc.runs=2", "scenario.steps=20", artifacts=tmp_path)
     assert proc.returncode == 2, proc.stderr
     assert (f"error: hydra.run.dir={other}: {other} already holds config.yaml, summary.parquet, which a run writes "
             f"there, and it is not an earlier run's folder") in proc.stderr
@@ -171,7 +171,7 @@ def test_a_run_folder_that_holds_another_folders_files_is_refused_and_untouched(
 
     run = tmp_path / "new" / "run"
     for _ in range(2):                        # a new folder, then the same folder again: an earlier run's
-        proc = cli(tmp_path, f"hydra.run.dir={run}", "mc.runs=2", "scenario.steps=20")
+        proc = run_pipeline(f"hydra.run.dir={run}", "mc.runs=2", "scenario.steps=20", artifacts=tmp_path)
         assert proc.returncode == 0, proc.stderr
     from pipeline.launch.folders import RUN_FILES
     written = {p.name for p in run.iterdir() if not p.name.endswith(".log")}
@@ -247,7 +247,7 @@ def test_study_000s_bound_is_a_number_at_small_but_regular_range_noise():
     import numpy as np
     from hydra.utils import instantiate
 
-    from tests.conftest import composed
+    from tests.helpers.config import composed
     values = {}
     for std in (1e-3, 10.0):
         cfg = composed("mie_los", f"sensors.range_std={std}")

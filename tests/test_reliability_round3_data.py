@@ -10,7 +10,8 @@ from pathlib import Path
 import polars as pl
 import pytest
 
-from tests.test_pipeline import cli
+from tests.helpers.processes import run_pipeline
+from tests.helpers.runs import job
 
 
 # ---- item 1: a refused run removes only what it created ---------------------------------------------
@@ -28,7 +29,7 @@ def test_a_refused_run_into_an_existing_folder_keeps_every_file_of_it(tmp_path):
     empty = tmp_path / "empty_but_mine"
     empty.mkdir()
     for folder in (mine, logs, empty):
-        proc = cli(tmp_path, f"hydra.run.dir={folder}", "mc.runs=0")
+        proc = run_pipeline(f"hydra.run.dir={folder}", "mc.runs=0", artifacts=tmp_path)
         assert proc.returncode == 2 and "error: mc.runs: 0 is not allowed" in proc.stderr
         assert folder.is_dir()
     assert (mine / "important.log").read_text() == "the user's log\n"
@@ -43,11 +44,11 @@ def test_a_refused_run_into_a_finished_runs_folder_leaves_its_results(tmp_path):
     """Item 1: a refused rerun into a finished run's folder wrote its failure over that run's
     status.json and summary.parquet (the folder held a status.json, taken as 'this job started')."""
     run = tmp_path / "done"
-    assert cli(tmp_path, f"hydra.run.dir={run}", "mc.runs=2", "scenario.steps=20",
-               "record.enabled=false").returncode == 0
+    assert run_pipeline(f"hydra.run.dir={run}", "mc.runs=2", "scenario.steps=20",
+                        "record.enabled=false", artifacts=tmp_path).returncode == 0
     before = {p.relative_to(run).as_posix(): p.read_bytes() for p in run.rglob("*") if p.is_file()
               and ".hydra" not in p.parts and not p.name.endswith(".log")}
-    proc = cli(tmp_path, f"hydra.run.dir={run}", "mc.runs=0")
+    proc = run_pipeline(f"hydra.run.dir={run}", "mc.runs=0", artifacts=tmp_path)
     assert proc.returncode == 2 and "Traceback" not in proc.stderr
     after = {p.relative_to(run).as_posix(): p.read_bytes() for p in run.rglob("*") if p.is_file()
              and ".hydra" not in p.parts and not p.name.endswith(".log")}
@@ -56,14 +57,6 @@ def test_a_refused_run_into_a_finished_runs_folder_leaves_its_results(tmp_path):
 
 
 # ---- item 2: a failed publish is the run folder's failure, never the cache file's -----------------
-
-def _job(tmp_path: Path, name: str, *overrides: str):
-    """(cfg, ctx) of an in-process single run ``runs/<name>`` (record off), as ``python -m pipeline`` makes them."""
-    from pipeline.run.runner import RunContext
-    from tests.test_pipeline import compose_cfg
-    cfg = compose_cfg(f"paths.artifacts={tmp_path}", "record.enabled=false", *overrides)
-    return cfg, RunContext(tmp_path / "runs" / name, tmp_path, list(overrides))
-
 
 def _as_the_cli_runs_it(cfg, ctx) -> int | None:
     """``python -m pipeline``'s single-run handling of a job (pipeline.__main__._run): its exit code."""
@@ -104,9 +97,9 @@ def test_a_cache_hit_that_cannot_be_published_keeps_the_cache_file_and_ends_the_
     """Item 2: with the run folder on a full disk, a cache hit that could not be copied was reported
     'cannot be read' and moved aside as ``*.rejected``; status.json stayed ``running``."""
     from pipeline.run.runner import run_experiment
-    run_experiment(*_job(tmp_path, "first", "mc.runs=2", "scenario.steps=20"))
+    run_experiment(*job(tmp_path, "first", "mc.runs=2", "scenario.steps=20"))
     cache = {p: p.read_bytes() for p in (tmp_path / "cache").rglob("*.parquet")}
-    cfg, ctx = _job(tmp_path, "second", "mc.runs=2", "scenario.steps=20")
+    cfg, ctx = job(tmp_path, "second", "mc.runs=2", "scenario.steps=20")
     from pipeline.storage.store import StageCache
     real_load = StageCache.load
 
@@ -139,7 +132,7 @@ def test_record_runs_are_checked_before_any_stage(tmp_path, record_runs, message
     from pipeline.errors import ConfigError
     from pipeline.run.runner import run_experiment
     with pytest.raises(ConfigError, match=message):
-        run_experiment(*_job(tmp_path, "bad", "mc.runs=2", "record.enabled=true", f"record.runs={record_runs}"))
+        run_experiment(*job(tmp_path, "bad", "mc.runs=2", "record.enabled=true", f"record.runs={record_runs}"))
     assert not (tmp_path / "cache").exists() and not (tmp_path / "runs").exists()
 
 
@@ -155,7 +148,7 @@ def test_a_failure_in_the_record_stage_keeps_the_computed_tables(tmp_path, monke
                            f"the tables were written before the recording; record.enabled=false skips it.")
 
     monkeypatch.setattr(SingleTargetStudy, "record", record)
-    cfg, ctx = _job(tmp_path, "rec", "mc.runs=2", "scenario.steps=20", "record.enabled=true")
+    cfg, ctx = job(tmp_path, "rec", "mc.runs=2", "scenario.steps=20", "record.enabled=true")
     assert _as_the_cli_runs_it(cfg, ctx) == 2
     assert "the tables were written before the recording" in capsys.readouterr().err
     summary, _ = read_table(ctx.run_dir / "summary.parquet")            # whole, its checksum verified
@@ -244,7 +237,7 @@ def test_a_full_disk_during_the_track_stages_cache_write_is_one_paragraph(tmp_pa
         return real(self, file, *args, metadata=metadata, **kwargs)
 
     monkeypatch.setattr(pl.DataFrame, "write_parquet", write_parquet)
-    cfg, ctx = _job(tmp_path, "full", "mc.runs=2", "scenario.steps=20")
+    cfg, ctx = job(tmp_path, "full", "mc.runs=2", "scenario.steps=20")
     assert _as_the_cli_runs_it(cfg, ctx) == 2
     err = capsys.readouterr().err.strip()
     assert err.startswith(f"error: cannot write {tmp_path / 'cache' / 'track'}/") and "\n" not in err
@@ -260,7 +253,7 @@ def test_a_damaged_file_in_a_read_only_cache_is_one_paragraph(tmp_path, monkeypa
 
     from pipeline.run.runner import run_experiment
     from pipeline.storage import store
-    run_experiment(*_job(tmp_path, "first", "mc.runs=2", "scenario.steps=20"))
+    run_experiment(*job(tmp_path, "first", "mc.runs=2", "scenario.steps=20"))
     (cached,) = (tmp_path / "cache" / "scenario").glob("*.parquet")
     data = bytearray(cached.read_bytes())
     data[len(data) // 2] ^= 0xFF                                      # a flipped byte in a data page
@@ -270,7 +263,7 @@ def test_a_damaged_file_in_a_read_only_cache_is_one_paragraph(tmp_path, monkeypa
         raise OSError(errno.EROFS, os.strerror(errno.EROFS), str(directory / ".lock"))
 
     monkeypatch.setattr(store, "_renames_locked", read_only)
-    cfg, ctx = _job(tmp_path, "second", "mc.runs=2", "scenario.steps=20")
+    cfg, ctx = job(tmp_path, "second", "mc.runs=2", "scenario.steps=20")
     assert _as_the_cli_runs_it(cfg, ctx) == 2
     err = capsys.readouterr().err.strip()
     assert err.startswith(f"error: cache file {cached} cannot be used: ") and "\n" not in err
@@ -283,7 +276,7 @@ def _two_runs(tmp_path: Path) -> list[Path]:
     from pipeline.run.runner import run_experiment
     folders = []
     for name in ("a", "b"):
-        cfg, ctx = _job(tmp_path, name, "mc.runs=2", "scenario.steps=20")
+        cfg, ctx = job(tmp_path, name, "mc.runs=2", "scenario.steps=20")
         run_experiment(cfg, ctx)
         folders.append(ctx.run_dir)
     return folders
@@ -327,7 +320,7 @@ def test_an_experiment_file_that_is_not_a_global_mapping_is_one_paragraph(tmp_pa
     name interpolates experiment_name, which it never set)."""
     (tmp_path / "extra" / "experiment").mkdir(parents=True)
     (tmp_path / "extra" / "experiment" / "odd.yaml").write_text(text)
-    proc = cli(tmp_path, f"--config-dir={tmp_path / 'extra'}", "experiment=odd", "mc.runs=2")
+    proc = run_pipeline(f"--config-dir={tmp_path / 'extra'}", "experiment=odd", "mc.runs=2", artifacts=tmp_path)
     assert proc.returncode == 2 and "Traceback" not in proc.stderr
     (line,) = proc.stderr.strip().splitlines()
     assert line.startswith(f"error: experiment=odd: conf/experiment/odd.yaml (or the --config-dir file of that "
@@ -343,7 +336,7 @@ def test_a_seed_beyond_64_bits_is_refused_up_front(tmp_path, seed):
     from pipeline.run.runner import run_experiment
     with pytest.raises(ConfigError, match=rf"mc.seed: {seed} is not allowed; the seed must be an integer from 0 to "
                                           rf"{2**63 - 1} \(2\*\*63 - 1"):
-        run_experiment(*_job(tmp_path, "bad", "mc.runs=2", f"mc.seed={seed}"))
+        run_experiment(*job(tmp_path, "bad", "mc.runs=2", f"mc.seed={seed}"))
     assert not (tmp_path / "cache").exists()
-    cfg, _ = _job(tmp_path, "largest", "mc.runs=2", f"mc.seed={2**63 - 1}")
+    cfg, _ = job(tmp_path, "largest", "mc.runs=2", f"mc.seed={2**63 - 1}")
     validate(cfg)                                                      # the largest is allowed

@@ -11,7 +11,7 @@ from pipeline.errors import ConfigError
 
 
 def _job(tmp_path, name, *overrides):
-    from tests.test_reliability_round3_data import _job as job
+    from tests.helpers.runs import job
     return job(tmp_path, name, "mc.runs=2", "scenario.steps=20", *overrides)
 
 
@@ -43,10 +43,10 @@ def test_too_few_bootstrap_resamples_are_refused_before_any_stage(tmp_path, valu
 
 def test_the_allowed_ends_of_confidence_and_resamples_pass():
     from pipeline.run.config import check_uncertainty
-    from tests.test_pipeline import compose_cfg
+    from tests.helpers.config import composed_config
     for overrides in (["uncertainty.confidence=0.5", "uncertainty.bootstrap_resamples=100"],
                       ["uncertainty.confidence=0.999"], []):
-        check_uncertainty(compose_cfg(*overrides))
+        check_uncertainty(composed_config(*overrides))
 
 
 # ---- item 16: a NEES below zero is null with its flag, never a number -----------------------------

@@ -80,8 +80,8 @@ def test_an_estimates_table_the_run_never_wrote_is_not_served(artifacts):
 @pytest.fixture()
 def other_seed(artifacts, smoke_runs) -> Path:
     """The same experiment at seed 2, beside the copy of the smoke run (seed 1 there)."""
-    from tests.conftest import smoke_experiments
-    from tests.test_pipeline import run_in_process
+    from tests.helpers.config import smoke_experiments
+    from tests.helpers.runs import run_in_process
 
     overrides = dict(smoke_experiments())[EXPERIMENT]
     _, ctx = run_in_process(artifacts, f"{EXPERIMENT}/seed2", f"experiment={EXPERIMENT}", "mc.runs=2", "mc.seed=2",

@@ -36,7 +36,7 @@ def test_a_module_attribute_of_an_allowed_package_is_refused_where_it_is_defined
 def test_a_module_attribute_builds_nothing_in_a_run(tmp_path):
     """Item 6: '+filters.evil={_target_: pipeline.run.runner.logging.FileHandler, ...}' truncated the file
     (the variant was built before its missing run() was noticed)."""
-    from tests.test_pipeline import run_in_process
+    from tests.helpers.runs import run_in_process
     victim = tmp_path / "victim.txt"
     victim.write_text("keep")
     node = f"{{_target_: pipeline.run.runner.logging.FileHandler, filename: '{victim}', mode: w}}"
@@ -116,14 +116,14 @@ def test_a_callback_outside_the_allow_list_is_refused_before_hydra_builds_it(tmp
 
 def test_a_callback_set_by_an_experiment_file_is_refused(tmp_path):
     """Item 5: an experiment YAML can set hydra.callbacks too (a callback chain there ran a command)."""
-    from tests.test_pipeline import cli
+    from tests.helpers.processes import run_pipeline
     victim = tmp_path / "victim.txt"
     victim.write_text("keep")
     (tmp_path / "extra" / "experiment").mkdir(parents=True)
     (tmp_path / "extra" / "experiment" / "evil.yaml").write_text(
         "# @package _global_\ndefaults:\n  - ao_vsimm_s1\n  - _self_\nexperiment_name: evil\nhydra:\n  callbacks:\n"
         f"    evil:\n      _target_: logging.FileHandler\n      filename: '{victim}'\n      mode: w\n")
-    proc = cli(tmp_path, f"--config-dir={tmp_path / 'extra'}", "experiment=evil", "mc.runs=0")
+    proc = run_pipeline(f"--config-dir={tmp_path / 'extra'}", "experiment=evil", "mc.runs=0", artifacts=tmp_path)
     assert victim.read_text() == "keep" and proc.returncode == 2
     (line,) = proc.stderr.strip().splitlines()
     assert line.startswith("error: hydra.callbacks.evil._target_: 'logging.FileHandler' is not allowed")
@@ -187,7 +187,7 @@ def stored_run(tmp_path, *, packages, tables, **values):
     what the checks before any stage read: the config the user may have edited, or got from elsewhere."""
     import json
 
-    from tests.conftest import composed_config
+    from tests.helpers.config import composed_config
     from omegaconf import open_dict
     cfg = composed_config(f"paths.artifacts={tmp_path}", "mc.runs=2", "record.enabled=false")
     with open_dict(cfg):

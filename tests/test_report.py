@@ -14,9 +14,10 @@ import pytest
 
 from pipeline.errors import ConfigError
 from pipeline.results.report import ReportError, ReportSpec, TargetSpec, evaluate_target, load_run, main, write_reports
-from tests.test_pipeline import ROOT, run_in_process
+from tests.helpers.processes import ROOT
+from tests.helpers.report_targets import CROSS, RATIO, SMALL, THRESHOLD, around, tables_with_resamples
+from tests.helpers.runs import run_in_process
 
-SMALL = ("mc.runs=3", "scenario.steps=60")
 
 
 @pytest.fixture(scope="module")
@@ -126,7 +127,7 @@ def test_report_spec_rejects_a_target_list():
 def test_every_experiment_declares_targets_that_parse():
     from omegaconf import OmegaConf
 
-    from tests.conftest import EXPERIMENTS, composed
+    from tests.helpers.config import composed, EXPERIMENTS
     for name in EXPERIMENTS:
         cfg = composed(name)
         spec = ReportSpec.from_config(OmegaConf.to_container(cfg.report, resolve=True))
@@ -144,49 +145,22 @@ def test_current_rechecks_a_stored_run_against_the_definitions_in_conf(small_run
 
 
 # ---- targets judged with the values' uncertainty (issue 18) ---------------------------------------
-def _tables_with_resamples(a: np.ndarray, b: np.ndarray | None = None, runs: int = 100):
-    """Summary values a[0] (and b[0]) of variants a (and b) with joint resamples a[1:] (b[1:]): the
-    same resampled runs in both."""
-    from pipeline.results.report import RunTables, pivot_summary, resampled_wide
-    columns = [("a", a)] + ([("b", b)] if b is not None else [])
-    summary = pl.DataFrame({"variant_key": [k for k, _ in columns], "series": ["position_rmse"] * len(columns),
-                            "window": ["all"] * len(columns), "value": [v[0] for _, v in columns]})
-    count = a.size - 1
-    resamples = pl.DataFrame({"variant_key": np.repeat([k for k, _ in columns], count),
-                              "series": ["position_rmse"] * len(columns) * count,
-                              "window": ["all"] * len(columns) * count,
-                              "resample": np.tile(np.arange(count), len(columns)).astype(np.int16),
-                              "value": np.concatenate([v[1:] for _, v in columns])})
-    wide = pivot_summary(summary)
-    return RunTables(Path("."), "x", {}, {"runs": runs}, summary, pl.DataFrame(), wide, None,
-                     resampled_wide(wide, resamples))
-
-
-THRESHOLD = TargetSpec("t", "below 10", "p", """SELECT CAST("a:position_rmse" AS VARCHAR) AS measured,
-                                                    "a:position_rmse" < 10 AS pass FROM wide WHERE "window" = 'all'""")
-
-
-def _around(value: float, spread: float, seed: int = 0) -> np.ndarray:
-    """The value, then 400 resamples around it with standard deviation ``spread``."""
-    return np.concatenate([[value], value + spread * np.random.default_rng(seed).standard_normal(400)])
-
-
 def test_a_target_is_pass_fail_or_inconclusive_by_the_share_of_passing_resamples():
-    assert evaluate_target(_tables_with_resamples(_around(9.0, 0.2)), THRESHOLD).verdict == "PASS"
-    assert evaluate_target(_tables_with_resamples(_around(11.0, 0.2)), THRESHOLD).verdict == "FAIL"
-    straddling = evaluate_target(_tables_with_resamples(_around(9.8, 0.2)), THRESHOLD)
+    assert evaluate_target(tables_with_resamples(around(9.0, 0.2)), THRESHOLD).verdict == "PASS"
+    assert evaluate_target(tables_with_resamples(around(11.0, 0.2)), THRESHOLD).verdict == "FAIL"
+    straddling = evaluate_target(tables_with_resamples(around(9.8, 0.2)), THRESHOLD)
     assert straddling.verdict == "INCONCLUSIVE" and straddling.point_pass
     # margin 0.2 over a standard error of 0.2: z ~ 1, so about (1.96 / 1)^2 x 100 runs
     assert 300 <= int(straddling.runs_to_decide.split()[1]) <= 500
     # the values pass but most resamples fail: no number of runs would make the values' verdict hold
-    leaning = _around(10.3, 0.2)
+    leaning = around(10.3, 0.2)
     leaning[0] = 9.99
-    assert "lean against" in evaluate_target(_tables_with_resamples(leaning), THRESHOLD).runs_to_decide
+    assert "lean against" in evaluate_target(tables_with_resamples(leaning), THRESHOLD).runs_to_decide
 
 
 def test_a_target_over_a_window_free_value_is_judged_on_its_value():
     spec = TargetSpec("c", "t", "p", """SELECT 'x' AS measured, COUNT(*) = 1 AS pass FROM summary""")
-    result = evaluate_target(_tables_with_resamples(_around(9.8, 0.2)), spec)
+    result = evaluate_target(tables_with_resamples(around(9.8, 0.2)), spec)
     assert result.verdict == "PASS" and "reads no summary interval" in result.interval_note
 
 
@@ -198,18 +172,14 @@ def test_a_run_without_stored_resamples_is_judged_on_its_values_and_says_so():
     assert result.verdict == "PASS" and "stored no resamples" in result.interval_note
 
 
-RATIO = TargetSpec("r", "a within 2 % of b", "p", """SELECT CAST("a:position_rmse" / "b:position_rmse" AS VARCHAR) AS measured,
-    ABS("a:position_rmse" / "b:position_rmse" - 1) < 0.02 AS pass FROM wide WHERE "window" = 'all'""")
-
-
 def test_a_paired_target_is_judged_on_joint_resamples():
     rng = np.random.default_rng(1)
     common = 20.0 + rng.normal(0, 1.0, 401)                 # the runs' spread (5 %), shared by both variants
     a, b = common * 1.001, common.copy()                     # a differs by 0.1 %, whatever the runs
-    result = evaluate_target(_tables_with_resamples(a, b), RATIO)
+    result = evaluate_target(tables_with_resamples(a, b), RATIO)
     assert result.verdict == "PASS" and "100.0 % of 400" in result.interval_note
     # the same spreads resampled independently: the ratio's spread is the runs' (~7 %), undecided
-    unpaired = evaluate_target(_tables_with_resamples(a, np.concatenate([b[:1], rng.permutation(b[1:])])), RATIO)
+    unpaired = evaluate_target(tables_with_resamples(a, np.concatenate([b[:1], rng.permutation(b[1:])])), RATIO)
     assert unpaired.verdict == "INCONCLUSIVE"
 
 
@@ -218,15 +188,10 @@ def test_an_inconclusive_paired_target_names_the_runs_that_would_decide_it():
     common = 20.0 + rng.normal(0, 1.0, 401)
     a = common * (1.015 + rng.normal(0, 0.005, 401))         # 1.5 % +- 0.5 %: z = 1 against the 2 % margin
     a[0] = common[0] * 1.015
-    result = evaluate_target(_tables_with_resamples(a, common), RATIO)
+    result = evaluate_target(tables_with_resamples(a, common), RATIO)
     assert result.verdict == "INCONCLUSIVE" and result.point_pass
     runs = int(result.runs_to_decide.split()[1])
     assert 250 <= runs <= 600                                 # (1.96 / ~1)^2 x 100 runs
-
-
-CROSS = TargetSpec("x", "a below b", "p", """WITH ref AS (SELECT "b:position_rmse" AS m FROM wide WHERE "window" = 'all')
-    SELECT CAST("a:position_rmse" AS VARCHAR) AS measured, "a:position_rmse" < ref.m AS pass
-    FROM wide CROSS JOIN ref WHERE "window" = 'all'""")
 
 
 def test_a_target_that_joins_the_wide_table_to_itself_is_judged_resample_by_resample():
@@ -234,10 +199,10 @@ def test_a_target_that_joins_the_wide_table_to_itself_is_judged_resample_by_resa
     so each resample is queried on its own; the share counts each resample's own verdict."""
     b = np.full(401, 20.0)
     a = np.concatenate([[19.0], np.full(389, 19.0), np.full(11, 21.0)])     # 389 of 400 resamples pass
-    result = evaluate_target(_tables_with_resamples(a, b), CROSS)
+    result = evaluate_target(tables_with_resamples(a, b), CROSS)
     assert result.verdict == "INCONCLUSIVE" and "97.2 % of 400" in result.interval_note
     a[-1] = 19.0                                                             # 390 of 400: 97.5 %, the bar
-    result = evaluate_target(_tables_with_resamples(a, b), CROSS)
+    result = evaluate_target(tables_with_resamples(a, b), CROSS)
     assert result.verdict == "PASS" and "97.5 % of 400" in result.interval_note
 
 
@@ -248,5 +213,5 @@ def test_the_resample_queries_run_where_the_system_has_no_affinity_mask(monkeypa
     monkeypatch.delattr(os, "sched_getaffinity", raising=False)
     b = np.full(401, 20.0)
     a = np.concatenate([[19.0], np.full(395, 19.0), np.full(5, 21.0)])
-    result = evaluate_target(_tables_with_resamples(a, b), CROSS)
+    result = evaluate_target(tables_with_resamples(a, b), CROSS)
     assert result.verdict == "PASS" and "98.8 % of 400" in result.interval_note

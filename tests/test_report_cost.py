@@ -11,8 +11,8 @@ import pytest
 
 import pipeline.results.report as report
 from pipeline.results.report import ReportSpec, RunTables, evaluate_target, load_run
-from tests.test_report import CROSS, RATIO, THRESHOLD, SMALL, _around, _tables_with_resamples
-from tests.test_pipeline import run_in_process
+from tests.helpers.report_targets import around, CROSS, RATIO, SMALL, tables_with_resamples, THRESHOLD
+from tests.helpers.runs import run_in_process
 
 
 def _largest_result(monkeypatch) -> list[int]:
@@ -34,7 +34,7 @@ def test_a_self_joining_target_never_builds_every_pair_of_resamples(monkeypatch)
     heights = _largest_result(monkeypatch)
     b = np.full(401, 20.0)
     a = np.concatenate([[19.0], np.full(389, 19.0), np.full(11, 21.0)])
-    result = evaluate_target(_tables_with_resamples(a, b), CROSS)
+    result = evaluate_target(tables_with_resamples(a, b), CROSS)
     assert result.verdict == "INCONCLUSIVE" and "97.2 % of 400" in result.interval_note
     assert heights and max(heights) <= 400
 
@@ -52,10 +52,10 @@ def small_run(tmp_path_factory):
 def test_the_verdicts_are_those_without_the_probe(small_run, monkeypatch):
     tables = load_run(small_run)
     specs = ReportSpec.from_config(tables.config["report"]).targets
-    synthetic = [(_tables_with_resamples(_around(9.8, 0.2)), THRESHOLD),
-                 (_tables_with_resamples(20.0 + np.random.default_rng(1).normal(0, 1.0, 401) * 1.001,
+    synthetic = [(tables_with_resamples(around(9.8, 0.2)), THRESHOLD),
+                 (tables_with_resamples(20.0 + np.random.default_rng(1).normal(0, 1.0, 401) * 1.001,
                                          20.0 + np.random.default_rng(1).normal(0, 1.0, 401)), RATIO),
-                 (_tables_with_resamples(np.concatenate([[19.0], np.full(389, 19.0), np.full(11, 21.0)]),
+                 (tables_with_resamples(np.concatenate([[19.0], np.full(389, 19.0), np.full(11, 21.0)]),
                                          np.full(401, 20.0)), CROSS)]
     cases = [(tables, s) for s in specs] + synthetic
     probed = [evaluate_target(t, s) for t, s in cases]

@@ -14,7 +14,7 @@ import polars as pl
 import pytest
 
 from pipeline.results.report import ReportSpec, evaluate_finding, evaluate_target, load_run
-from tests.test_pipeline import run_in_process
+from tests.helpers.runs import run_in_process
 
 RUNS = 100          # the paper's size
 NO_RUNAWAY = ("no_runaway_detections", "compensation_helps_during_maneuver", "within_10pct_after_end_detected")

@@ -11,7 +11,7 @@ import numpy as np
 from hydra import compose, initialize_config_dir
 
 from pipeline.run.config import build
-from tests.conftest import CONF
+from tests.helpers.config import CONF
 from pipeline.evaluation.evaluate import resolved
 
 

@@ -16,8 +16,8 @@ from pathlib import Path
 import pytest
 
 from pipeline.results.report import ReportSpec, evaluate_target, load_run
-from tests.conftest import EXPERIMENTS, composed
-from tests.test_pipeline import run_in_process
+from tests.helpers.config import composed, EXPERIMENTS
+from tests.helpers.runs import run_in_process
 
 
 def _experiments() -> list[tuple[str, int]]:

@@ -15,13 +15,13 @@ import polars as pl
 import pytest
 from hydra import compose, initialize_config_dir
 
-from tests.extras import require_extra
+from tests.helpers.extras import require_extra
 
 # .ci/run sets MTT_REQUIRE_SLURM=1: in CI a missing extra fails instead of skipping
 require_extra("slurm", "hydra_plugins.hydra_submitit_launcher", "submitit")
 
 ROOT = Path(__file__).resolve().parents[1]
-# full tier (tests/conftest.py): the submitit launcher
+# full tier (tests/helpers/tiers.py): the submitit launcher
 pytestmark = [pytest.mark.slurm, pytest.mark.full]
 
 

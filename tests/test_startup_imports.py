@@ -15,7 +15,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from tests.conftest import ROOT
+from tests.helpers.config import ROOT
 
 NOT_AT_IMPORT = ["scipy", "matplotlib", "numba", "rerun", "stonesoup", "optuna", "submitit", "tqdm"]
 # a job without a recording on no terminal. It imports numba: study 001's IMMs run compiled

@@ -22,14 +22,14 @@ import numpy as np
 import polars as pl
 import pytest
 
-from tests.extras import require_extra
+from tests.helpers.extras import require_extra
 
 require_extra("stonesoup", "stonesoup")
 
 from pipeline.errors import ConfigError  # noqa: E402
 from pipeline.results.report import ReportSpec, evaluate_target, load_run as load_tables  # noqa: E402
 from pipeline.storage.store import read_table  # noqa: E402
-from tests.test_pipeline import run_in_process  # noqa: E402
+from tests.helpers.runs import run_in_process  # noqa: E402
 
 
 def _estimates(run_dir, key):
@@ -124,7 +124,7 @@ def test_the_default_workers_are_the_processors_this_job_may_run_on(monkeypatch)
 def test_the_estimates_do_not_depend_on_the_workers_or_the_chunks():
     """Run r's result depends on run r alone: 1 or 2 worker processes, all runs or a chunk of them; a particle
     filter's draws are seeded per run (its index in the whole Monte Carlo), so it too."""
-    from tests.conftest import measurements, scenario
+    from tests.helpers.filter_inputs import measurements, scenario
     truth = scenario("ao_vsimm_s1", steps=12).generate(4, 1)
     series = dataclasses.replace(measurements(truth, 1), state_names=("x", "vx", "y", "vy"))
     for kind in ("kf", "pf"):

@@ -8,7 +8,7 @@ import pytest
 
 from pipeline.storage import schemas
 from pipeline.storage.store import atomic_write_parquet
-from tests.conftest import scenario
+from tests.helpers.filter_inputs import scenario
 
 
 def test_an_interrupted_write_leaves_the_previous_file_and_no_temp(tmp_path, monkeypatch):

@@ -23,7 +23,7 @@ from pipeline.studies.mie_los.scenario import PiecewiseAcceleration3D
 from pipeline.sensors import Radar3D, cartesian, conversion_jacobian, wrap_angle
 from pipeline.evaluation.metrics import is_count
 from pipeline.views.tables import BinnedTable, ReportContext, format_summary
-from tests.conftest import CONF
+from tests.helpers.config import CONF
 
 A = np.array([15.0, -10.0, -5.0])
 P0 = np.array([8000.0, 4000.0, 2000.0])
@@ -455,7 +455,7 @@ def test_study_001_printed_table_is_unchanged(tmp_path):
 
     # a real study-001 run: the same metrics and windows as before, and after the summary only the
     # paired comparisons with the reference variant
-    from tests.test_pipeline import run_in_process
+    from tests.helpers.runs import run_in_process
     out, ctx = run_in_process(tmp_path, "s1", "mc.runs=2", "scenario.steps=30")
     assert out.table == format_summary(out.summary, "ao_vsimm_s1", 2, out.comparisons)
     assert set(out.metrics["series"]) == {"acceleration_rmse_x", "acceleration_rmse_y", "position_rmse",

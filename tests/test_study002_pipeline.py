@@ -16,7 +16,7 @@ from pipeline.errors import ConfigError
 from pipeline.run.runner import RunContext, run_experiment
 from pipeline.storage.store import read_table
 from pipeline.studies.async_bias import codec as bias_codec
-from tests.conftest import CONF
+from tests.helpers.config import CONF
 
 SHORT = ["scenario.duration=20", "mc.runs=3"]
 

@@ -12,7 +12,7 @@ from pipeline.data import Truth
 from filters.bias import cv_transition, dcwna_process_noise
 from pipeline.studies.async_bias.scenario import ConstantVelocityGrid
 from pipeline.studies.async_bias.sensor import BiasedRadarNetwork
-from tests.conftest import CONF
+from tests.helpers.config import CONF
 
 
 def study_scenario(**overrides) -> ConstantVelocityGrid:

@@ -16,7 +16,7 @@ from pipeline.errors import ConfigError
 from pipeline.results.recompute import MEASURED    # timed in each job: not equal between two jobs
 from pipeline.run.runner import RunContext, run_experiment
 from pipeline.storage.store import read_table
-from tests.conftest import CONF
+from tests.helpers.config import CONF
 
 SHORT = ["scenario.duration=1200", "mc.runs=2", "sensors.active_intervals=[[0,300],[600,700]]"]
 

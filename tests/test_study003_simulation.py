@@ -12,7 +12,7 @@ from pipeline.data import Truth
 from pipeline.studies.sonar.scenario import SonarEncounter
 from pipeline.storage.schemas import detections_from_frame, detections_to_frame, truth_from_frame, truth_to_frame
 from pipeline.studies.sonar.sensor import ActivePassiveSonar
-from tests.conftest import CONF
+from tests.helpers.config import CONF
 
 
 def load(group: str, name: str, **overrides):

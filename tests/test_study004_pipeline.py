@@ -11,19 +11,13 @@ from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 
 from pipeline.errors import ConfigError
-from pipeline.run.runner import RunContext, run_experiment
 from pipeline.storage.store import read_table
-from tests.conftest import CONF
-
-SHORT = ["scenario.duration=100", "mc.runs=2", "target_model.particles=100"]
-
+from tests.helpers import runs
+from tests.helpers.config import CONF
+from tests.helpers.runs import SONOBUOY_SHORT
 
 def run_study(tmp_path: Path, name: str, *overrides: str, experiment: str = "sonobuoy_case2b", record=False):
-    with initialize_config_dir(version_base="1.3", config_dir=str(CONF)):
-        cfg = compose("config", overrides=[f"experiment={experiment}", f"paths.artifacts={tmp_path}",
-                                           f"record.enabled={str(record).lower()}", *overrides])
-    ctx = RunContext(tmp_path / "runs" / name, tmp_path, list(overrides))
-    return run_experiment(cfg, ctx), ctx
+    return runs.run_study(tmp_path, name, *overrides, experiment=experiment, record=record)
 
 
 def test_experiments_compose_with_the_case_values():
@@ -41,7 +35,7 @@ def test_experiments_compose_with_the_case_values():
 
 
 def test_a_short_run_writes_tables_summary_and_a_recording_with_the_cloud(tmp_path):
-    out, ctx = run_study(tmp_path, "first", *SHORT, record=True)
+    out, ctx = run_study(tmp_path, "first", *SONOBUOY_SHORT, record=True)
     df, meta = read_table(ctx.run_dir / "estimates" / "ammpf.parquet")
     assert df.height == 2 * 21 and df.schema["P_upper"] == pl.Array(pl.Float32, 210)
     assert "particles" not in df.columns and df.schema["mode_probabilities"] == pl.Array(pl.Float64, 3)
@@ -66,6 +60,6 @@ def test_a_short_run_writes_tables_summary_and_a_recording_with_the_cloud(tmp_pa
 ])
 def test_bad_config_is_rejected_before_any_stage(tmp_path, overrides, message):
     with pytest.raises(ConfigError) as info:
-        run_study(tmp_path, "bad", *SHORT, *overrides)
+        run_study(tmp_path, "bad", *SONOBUOY_SHORT, *overrides)
     assert message in str(info.value)
     assert not (tmp_path / "cache").exists()

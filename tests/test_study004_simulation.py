@@ -15,7 +15,7 @@ from pipeline.studies.sonobuoy.scenario import SonobuoyField
 from pipeline.storage.schemas import detections_from_frame, detections_to_frame, truth_from_frame, truth_to_frame
 from pipeline.run.seeding import run_generators
 from pipeline.studies.sonobuoy.sensor import SonobuoyBearings
-from tests.conftest import CONF
+from tests.helpers.config import CONF
 
 SQUARE_4KM = [[-2000.0, -2000.0], [2000.0, -2000.0], [2000.0, 2000.0], [-2000.0, 2000.0]]
 

@@ -17,8 +17,8 @@ from pipeline.views.colours import variant_colour
 from pipeline.storage.store import read_table
 from pipeline.results.sweep import NO_WINDOW, SweepError, collect, draw_metric_figure, metric_against, select_metric
 from pipeline.views.sweep_recording import DEFAULT_SERIES
-from tests.rrd_reading import read_chunks
-from tests.test_pipeline import cli
+from tests.helpers.rrd_reading import read_chunks
+from tests.helpers.processes import run_pipeline
 
 T1_MU, SEED = "filters.vsimm.t1_mu", "mc.seed"
 VARIANTS = ["fsimm", "vsimm", "ao_vsimm"]
@@ -28,7 +28,7 @@ VARIANTS = ["fsimm", "vsimm", "ao_vsimm"]
 def real_sweep(tmp_path_factory):
     """Four jobs: two swept keys, one float (t1_mu), one integer (mc.seed)."""
     root = tmp_path_factory.mktemp("glance")
-    proc = cli(root, "-m", f"{T1_MU}=0.8,0.9", f"{SEED}=1,2", "mc.runs=3", "scenario.steps=40", "record.enabled=false")
+    proc = run_pipeline("-m", f"{T1_MU}=0.8,0.9", f"{SEED}=1,2", "mc.runs=3", "scenario.steps=40", "record.enabled=false", artifacts=root)
     assert proc.returncode == 0, proc.stderr[-3000:]
     (folder,) = (root / "multirun").iterdir()
     return folder, proc.stderr
@@ -224,7 +224,7 @@ def test_the_aggregate_cli_rebuilds_the_sweep_files(real_sweep, tmp_path):
 def test_a_failed_job_is_in_the_index_with_its_error_and_the_report_index_has_the_swept_column(tmp_path):
     from pipeline.results.report import swept_columns
 
-    proc = cli(tmp_path, "-m", "mc.runs=2,0", "scenario.steps=20", "record.enabled=false")
+    proc = run_pipeline("-m", "mc.runs=2,0", "scenario.steps=20", "record.enabled=false", artifacts=tmp_path)
     assert proc.returncode == 1
     (folder,) = (tmp_path / "multirun").iterdir()
     index = pl.read_parquet(folder / "sweep_index.parquet")

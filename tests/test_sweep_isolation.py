@@ -15,7 +15,7 @@ from pathlib import Path
 import polars as pl
 import pytest
 
-# full tier (tests/conftest.py): sweeps across processes, killed jobs
+# full tier (tests/helpers/tiers.py): sweeps across processes, killed jobs
 pytestmark = pytest.mark.full
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -16,7 +16,7 @@ from pipeline.errors import ConfigError
 from pipeline.evaluation.evaluate import Window, summary_rows
 from pipeline.run.runner import prepare
 from pipeline.views.tables import format_summary
-from tests.conftest import composed
+from tests.helpers.config import composed
 
 ROOT = Path(__file__).resolve().parents[1]
 EXPERIMENTS = sorted(p.stem for p in (ROOT / "conf" / "experiment").glob("*.yaml"))
@@ -93,7 +93,7 @@ def test_a_compute_reference_that_is_no_variant_is_refused():
 
 
 def test_a_study_004_run_prints_compute_as_percent_of_sir_mm(tmp_path):
-    from tests.test_pipeline import run_in_process
+    from tests.helpers.runs import run_in_process
     out, _ = run_in_process(tmp_path, "case2", "experiment=sonobuoy_case2", "mc.runs=2", "scenario.duration=100",
                             "target_model.particles=100")
     assert "compute % of SIR-MM" in out.table and "compute % of EKF" not in out.table

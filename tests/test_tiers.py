@@ -1,4 +1,4 @@
-"""The two test tiers (tests/conftest.py): plain pytest leaves the 'full' tests out unless they are named;
+"""The two test tiers (tests/helpers/tiers.py, conftest's hooks): plain pytest leaves the 'full' tests out unless they are named;
 --full, a marker expression or naming the file keeps them; the README's test command (CI) runs both."""
 
 from __future__ import annotations
@@ -8,7 +8,7 @@ from types import SimpleNamespace
 
 import pytest
 
-from tests import conftest
+from tests.helpers import tiers
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -42,7 +42,7 @@ def _items():
 
 def _kept(config) -> list[str]:
     items = _items()
-    conftest.pytest_collection_modifyitems(config, items)
+    tiers.pytest_collection_modifyitems(config, items)
     return [i.nodeid.split("::")[1] for i in items]
 
 

@@ -9,7 +9,7 @@ import pytest
 from filters.base import MeasurementSeries
 from filters.kalman import kalman_filter
 from filters.tracker import KalmanTracker, to_layout
-from tests.test_pipeline import run_in_process
+from tests.helpers.runs import run_in_process
 
 
 def _cv_truth(R: int, K: int, dt: float, d: int, rng) -> np.ndarray:
@@ -92,7 +92,7 @@ def test_on_sonar_reports_it_is_the_studys_plain_ekf():
 
     from filters.mgekf import PlainEKF
     from pipeline.run.config import build
-    from tests.conftest import CONF
+    from tests.helpers.config import CONF
     with initialize_config_dir(version_base="1.3", config_dir=str(CONF)):
         cfg = compose("config", overrides=["experiment=sonar_case1", "scenario.duration=2000"])
     scenario, sensor, study = build(cfg.scenario, "scenario"), build(cfg.sensors, "sensors"), build(cfg.study, "study")

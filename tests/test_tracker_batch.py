@@ -8,14 +8,14 @@ import numpy as np
 import pytest
 
 from filters.tracker import KalmanTracker
-from tests.test_pipeline import compose_cfg
+from tests.helpers.config import composed_config
 
 
 @pytest.mark.parametrize("engine", ["numba", "numpy"])
 @pytest.mark.parametrize("motion", ["singer", "cv"])
 def test_a_run_filtered_alone_equals_the_same_run_in_a_batch(motion, engine):
     from pipeline.run.runner import prepare
-    prepared = prepare(compose_cfg("experiment=mie_los", "scenario.duration=40"))
+    prepared = prepare(composed_config("experiment=mie_los", "scenario.duration=40"))
     truth = prepared.scenario.generate(7, 3)
     view = prepared.study.track_input(truth, prepared.sensor.measure(truth, 3), prepared.sensor, 3)
     tracker = KalmanTracker(motion=motion, engine=engine)

@@ -12,8 +12,9 @@ import pytest
 
 from filters.tracker import kernel as kalman_kernel
 from filters.tracker import KalmanTracker
-from tests.test_turn import radar_series
-from tests.test_turn_kernel import assert_same_to_rounding, turning_positions
+from tests.helpers.filter_inputs import radar_series
+from tests.helpers.assertions import assert_same_to_rounding
+from tests.helpers.filter_inputs import turning_positions
 
 
 def series(kind: str):

@@ -28,7 +28,7 @@ from pipeline.results.cli import main as query_main
 from pipeline.run import provenance
 from pipeline.run.process import identity
 from pipeline.storage import fingerprint
-from tests.test_pipeline import run_in_process
+from tests.helpers.runs import run_in_process
 
 GIT = shutil.which("git")
 pytestmark = pytest.mark.skipif(GIT is None, reason="git is not installed")
@@ -343,7 +343,7 @@ def test_gc_keeps_an_entry_that_a_store_renamed_onto_the_name_after_the_listing(
 def test_gc_while_a_job_runs_loses_nothing(tmp_path):
     """A job writes its stages while gc --apply runs in a loop: the job ends ok, every table it
     published reads with its checksum, and every cache entry it refers to is there."""
-    from tests.test_pipeline import cli
+    from tests.helpers.processes import run_pipeline
     old = _entry(tmp_path, "track", "o00000000000000", 7200.0)     # unreferenced and old: gc's work
     env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
     job = subprocess.Popen([sys.executable, "-m", "pipeline", f"paths.artifacts={tmp_path}", "mc.runs=40",

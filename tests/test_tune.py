@@ -11,15 +11,15 @@ import polars as pl
 import pytest
 import yaml
 
-from tests.extras import require_extra
+from tests.helpers.extras import require_extra
 
 # .ci/run sets MTT_REQUIRE_TUNE=1: in CI a missing extra fails instead of skipping
 require_extra("tune", "hydra_plugins.hydra_optuna_sweeper", "optuna")
 
 from pipeline.launch.objective import BEST_CONFIG  # noqa: E402
-from tests.test_pipeline import cli  # noqa: E402
+from tests.helpers.processes import run_pipeline  # noqa: E402
 
-# full tier (tests/conftest.py): the Optuna sweeper
+# full tier (tests/helpers/tiers.py): the Optuna sweeper
 pytestmark = [pytest.mark.tune, pytest.mark.full]
 TUNE = ["-m", "experiment=ao_vsimm_s2", "tune=vsimm_thresholds", "mc.runs=2"]
 
@@ -31,7 +31,7 @@ def _objective(job_dir) -> float:
 
 
 def test_an_optuna_search_writes_the_best_trials_whole_config_beside_the_sweep(tmp_path):
-    proc = cli(tmp_path, *TUNE, "hydra.sweeper.n_trials=4", "hydra.sweeper.n_jobs=2")
+    proc = run_pipeline(*TUNE, "hydra.sweeper.n_trials=4", "hydra.sweeper.n_jobs=2", artifacts=tmp_path)
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "Directions: ['minimize']" in proc.stdout          # the sweeper's direction follows objective.direction
     (sweep,) = (tmp_path / "multirun").iterdir()
@@ -57,8 +57,8 @@ def test_an_optuna_search_writes_the_best_trials_whole_config_beside_the_sweep(t
 
 def test_a_failed_trial_fails_alone_and_the_best_config_is_the_best_ok_job(tmp_path):
     # t1_mu=1.5 > t2_mu=1.0 (fixed) is refused by VSIMM (a failed job); sampler seed 1 draws both values
-    proc = cli(tmp_path, *TUNE, "hydra.sweeper.params={filters.vsimm.t1_mu: 'choice(0.85, 1.5)', filters.vsimm.t2_mu: '1.0'}",
-               "hydra.sweeper.n_trials=3", "hydra.sweeper.n_jobs=1")
+    proc = run_pipeline(*TUNE, "hydra.sweeper.params={filters.vsimm.t1_mu: 'choice(0.85, 1.5)', filters.vsimm.t2_mu: '1.0'}",
+                        "hydra.sweeper.n_trials=3", "hydra.sweeper.n_jobs=1", artifacts=tmp_path)
     assert proc.returncode == 1, proc.stderr[-3000:]           # the sweep ends and reports its failed job
     assert "Return value must be float-castable. Got 'None'" in proc.stdout   # Optuna: a failed trial, not an abort
     assert "t1_mu <= t2_mu" in proc.stderr

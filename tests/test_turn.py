@@ -10,49 +10,10 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from filters.base import MeasurementSeries
 from filters.tracker import KalmanTracker
 from filters.turn import CVCTIMM, SERIES_BELOW, coordinated_turn, turn_coefficients
 from pipeline.evaluation.evaluate import nis_metrics
-
-STUDY_000_LAYOUT = ("x", "y", "z", "vx", "vy", "vz", "ax", "ay", "az")
-
-
-def rotation(angle: np.ndarray) -> np.ndarray:
-    c, s = np.cos(angle), np.sin(angle)
-    return np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2)
-
-
-def circle(p0: np.ndarray, v0: np.ndarray, omega: float, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Closed form of a coordinated turn: p(t) = c + Rot(w t)(p0 - c), c = p0 + (-v0y, v0x)/w."""
-    centre = p0 + np.array([-v0[1], v0[0]]) / omega
-    turn = rotation(omega * t)
-    return centre + turn @ (p0 - centre), turn @ v0
-
-
-def positions_series(p: np.ndarray, t: np.ndarray, sigma: float, detected: np.ndarray | None = None,
-                     ) -> MeasurementSeries:
-    R, K, _ = p.shape
-    seen = np.ones((R, K), bool) if detected is None else detected
-    return MeasurementSeries(t, np.where(seen[..., None], p, np.nan), sigma**2 * np.eye(2), seen, np.zeros(K, int))
-
-
-def radar_series(rng: np.random.Generator, R: int = 6, K: int = 40, misses: float = 0.1) -> MeasurementSeries:
-    """Noisy range/azimuth/elevation of straight 3-D tracks from a radar at (100, -50, 10), some missed."""
-    t = np.arange(K) * 2.0
-    truth = (np.array([30e3, 10e3, 8e3]) + rng.uniform(-5e3, 5e3, (R, 1, 3))
-             + rng.uniform(-200, 200, (R, 1, 3)) * np.array([1, 1, 0.05]) * t[None, :, None])
-    radar = np.array([100.0, -50.0, 10.0])
-    rel = truth - radar
-    r = np.linalg.norm(rel, axis=-1)
-    std = np.array([10.0, 0.002, 0.002])
-    polar = np.stack([r, np.arctan2(rel[..., 1], rel[..., 0]), np.arcsin(rel[..., 2] / r)], -1)
-    polar = polar + std * rng.standard_normal(polar.shape)
-    detected = rng.random((R, K)) > misses
-    detected[:, :2] = True
-    return MeasurementSeries(t, np.where(detected[..., None], polar, np.nan), np.diag(std**2), detected,
-                             np.zeros(K, int), radar, STUDY_000_LAYOUT)
-
+from tests.helpers.filter_inputs import circle, positions_series, radar_series
 
 # ---- (a) the CT model ------------------------------------------------------------------------------
 def test_at_zero_turn_rate_the_ct_transition_is_cv_and_its_jacobian_takes_the_books_limit():
@@ -244,12 +205,12 @@ def test_it_runs_in_the_studies_of_both_its_kinds_with_its_modes_labelled_in_the
     import polars as pl
 
     from pipeline.run.runner import RunContext, run_experiment
-    from tests.rrd_reading import entity_index, read_chunks
-    from tests.test_pipeline import compose_cfg
+    from tests.helpers.rrd_reading import entity_index, read_chunks
+    from tests.helpers.config import composed_config
 
     overrides = [f"experiment={experiment}", "mc.runs=2", "+filter@filters.ct=imm_cv_ct"]
     ctx = RunContext(tmp_path / "runs" / "ct", tmp_path, overrides)
-    out = run_experiment(compose_cfg(f"paths.artifacts={tmp_path}", *overrides), ctx)
+    out = run_experiment(composed_config(f"paths.artifacts={tmp_path}", *overrides), ctx)
     rmse = out.summary.filter((pl.col("series") == "position_rmse") & (pl.col("variant_key") == "ct"))
     assert rmse.height > 0 and np.isfinite(rmse["value"].to_numpy()).all()
     entities = set(entity_index(read_chunks(ctx.run_dir / "recording.rrd")))

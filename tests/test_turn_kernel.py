@@ -13,39 +13,8 @@ import pytest
 
 from filters.tracker import kernel as kalman_kernel
 from filters.turn import CVCTIMM
-from tests.test_turn import circle, positions_series, radar_series
-
-
-def turning_positions(rng: np.random.Generator, R: int = 8, K: int = 120, varying: bool = False):
-    """2-D positions, noise 25 m: a straight leg, a turn of +-2..4 deg/s, a straight leg; ~10 % missed."""
-    t = np.concatenate([[0.0], np.cumsum(rng.uniform(1.0, 5.0, K - 1))]) if varying else np.arange(K) * 2.0
-    tracks = []
-    for _ in range(R):
-        p0, v0 = rng.uniform(-1e4, 1e4, 2), rng.uniform(-200.0, 200.0, 2)
-        omega = rng.choice([-1.0, 1.0]) * rng.uniform(0.035, 0.07)
-        start, stop = t[K // 3], t[2 * K // 3]
-        straight = p0 + v0 * np.minimum(t, start)[:, None]
-        turned, v1 = circle(straight[K // 3], v0, omega, np.clip(t - start, 0.0, stop - start))
-        track = np.where((t < start)[:, None], straight, turned)
-        after = t > stop
-        track[after] = turned[after][0] + v1[-1] * (t[after] - stop)[:, None] - v1[-1] * (t[after][0] - stop)
-        tracks.append(track)
-    p = np.stack(tracks) + 25.0 * rng.standard_normal((R, K, 2))
-    detected = rng.random((R, K)) > 0.1
-    detected[:, :2] = True
-    return positions_series(p, t, 25.0, detected)
-
-
-def assert_same_to_rounding(compiled, reference):
-    """Two engines' estimates (state, covariance, every extra): the same NaN, and within 1e-11 of
-    each output's largest entry (measured: ~1e-14 to 1e-12; the closed-form inverse of S and
-    index-order sums against LAPACK and BLAS are the only differences)."""
-    pairs = [("state", compiled.state, reference.state), ("covariance", compiled.covariance, reference.covariance),
-             *((name, compiled.extras[name], reference.extras[name]) for name in reference.extras)]
-    for name, ours, theirs in pairs:
-        np.testing.assert_array_equal(np.isnan(ours), np.isnan(theirs), err_msg=name)
-        scale = max(float(np.nanmax(np.abs(theirs))), 1.0)
-        assert np.nanmax(np.abs(ours - theirs)) <= 1e-11 * scale, (name, np.nanmax(np.abs(ours - theirs)) / scale)
+from tests.helpers.assertions import assert_same_to_rounding
+from tests.helpers.filter_inputs import radar_series, turning_positions
 
 
 def assert_engines_agree(m, ct_at_least: float = 0.9, **parameters):

@@ -11,7 +11,7 @@ import pytest
 
 from pipeline.results.query import query
 from pipeline.storage.store import read_table
-from tests.test_pipeline import run_in_process
+from tests.helpers.runs import run_in_process
 
 
 @pytest.fixture(scope="module")

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tests.conftest import composed
+from tests.helpers.config import composed
 
 
 # ---- (d) sensors.noise_std=20 and =20.0 are one cache key ---------------------------------------------
@@ -110,7 +110,7 @@ def test_a_job_times_every_variant_several_times_in_its_process_and_marks_cached
     """Before: compute_seconds was one pass, a cached variant's from whichever process computed it, and the
     summary said neither (no compute_passes / compute_cached / mixes_processes columns)."""
     import polars as pl
-    from tests.test_pipeline import run_in_process
+    from tests.helpers.runs import run_in_process
     first, _ = run_in_process(tmp_path, "first", "mc.runs=2", "scenario.steps=30", "timing.passes=3",
                               "timing.budget_s=30")
     timed = first.summary.filter(pl.col("series") == "compute_seconds")
@@ -169,7 +169,7 @@ class TwoComponents:
 def test_an_estimate_of_the_wrong_layout_is_refused_naming_the_variant_and_the_shape(tmp_path):
     """Before: ValueError 'operands could not be broadcast together with shapes (2,31,2) (2,31,4)'."""
     from pipeline.errors import EstimateLayoutError
-    from tests.test_pipeline import run_in_process
+    from tests.helpers.runs import run_in_process
     with pytest.raises(EstimateLayoutError) as info:
         run_in_process(tmp_path, "bad", "mc.runs=2", "scenario.steps=30", "plugins.packages=[tests]",
                        "+filters.two={_target_: tests.test_users_round.TwoComponents}")
@@ -196,7 +196,7 @@ def test_a_stored_run_reruns_into_the_artifacts_tree_with_its_config_and_the_ove
     import json
     from pipeline.results.query import main as query
     from pipeline.results.rerun import RerunError, rerun
-    from tests.test_pipeline import run_in_process
+    from tests.helpers.runs import run_in_process
     _, stored = run_in_process(tmp_path, "ao_vsimm_s1/stored", "mc.runs=2", "scenario.steps=30")
     outcome, ctx = rerun(stored.run_dir, ["mc.runs=3", "filters.vsimm.t1_mu=0.85"])
     assert ctx.run_dir.parent == tmp_path / "runs" / "ao_vsimm_s1" and ctx.run_dir != stored.run_dir

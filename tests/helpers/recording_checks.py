@@ -9,7 +9,7 @@ import pytest
 
 from pipeline.views.blueprints import title_chars
 from pipeline.views.colours import variant_colour
-from tests.rrd_reading import blueprint_views, capture_blueprint, legend_visible, up_to_now
+from tests.helpers.rrd_reading import blueprint_views, capture_blueprint, legend_visible, up_to_now
 
 @pytest.fixture(scope="module")
 def recording_variants(request):
