@@ -5,14 +5,13 @@ text and its two copies in memory at once (that transient was a 100-run study 00
 from __future__ import annotations
 
 import hashlib
-import subprocess
-import sys
 import textwrap
 
 import numpy as np
 import polars as pl
 
 from pipeline.storage import store
+from tests.helpers.processes import run_code
 
 
 def reference_digest(df: pl.DataFrame, metadata: dict[str, str]) -> str:
@@ -68,7 +67,6 @@ SCRIPT = textwrap.dedent("""
 
 
 def test_hashing_a_long_text_column_does_not_hold_its_joined_copies():
-    grown_mb = int(subprocess.run([sys.executable, "-c", SCRIPT], capture_output=True, text=True,
-                                  check=True).stdout.strip())
+    grown_mb = int(run_code(SCRIPT, check=True, timeout=None).stdout.strip())
     # whole: the joined text, its Python str and its UTF-8 bytes, ~90 MB each, above the frame's own peak
     assert grown_mb < 40, f"the checksum raised the process's peak by {grown_mb} MB"

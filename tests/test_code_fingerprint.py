@@ -10,7 +10,6 @@ from __future__ import annotations
 import ast
 import hashlib
 import json
-import os
 import re
 import subprocess
 import sys
@@ -21,6 +20,7 @@ import pytest
 
 from pipeline.storage import fingerprint
 from pipeline.storage import keys, store
+from tests.helpers.processes import run_pipeline
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -69,12 +69,10 @@ def write_package(where: Path, offset: float) -> None:
 
 
 def run_cli(tmp_path: Path, user: Path) -> subprocess.CompletedProcess:
-    env = {**os.environ, "HYDRA_FULL_ERROR": "0", "PYTHONPATH": f"{user}{os.pathsep}{ROOT}"}
-    return subprocess.run([sys.executable, "-m", "pipeline", f"paths.artifacts={tmp_path / 'artifacts'}",
-                           "experiment=ao_vsimm_s1", "mc.runs=3", "scenario.steps=40", "record.enabled=false",
-                           "+filters.cv={_target_: mytrack.cv.CV, name: CV}", "variants=[fsimm,cv]",
-                           "plugins.packages=[mytrack]"],
-                          cwd=tmp_path, capture_output=True, text=True, timeout=180, env=env)
+    return run_pipeline("experiment=ao_vsimm_s1", "mc.runs=3", "scenario.steps=40", "record.enabled=false",
+                        "+filters.cv={_target_: mytrack.cv.CV, name: CV}", "variants=[fsimm,cv]",
+                        "plugins.packages=[mytrack]", artifacts=tmp_path / "artifacts", cwd=tmp_path, paths=[user],
+                        timeout=180)
 
 
 def cv_position_rmse(tmp_path: Path) -> float:

@@ -23,7 +23,6 @@ import logging
 import multiprocessing as mp
 import os
 import subprocess
-import sys
 import threading
 import time
 from pathlib import Path
@@ -35,6 +34,7 @@ import pytest
 from pipeline.storage import store
 from pipeline.storage.schemas import META_TABLE, META_VERSION, SCHEMA_VERSION
 from pipeline.storage.store import META_KEY, StageCache, publish
+from tests.helpers.processes import start_code
 
 # full tier (tests/helpers/tiers.py): jobs at once on one cache
 pytestmark = pytest.mark.full
@@ -159,8 +159,7 @@ def test_a_store_landing_between_the_check_and_the_move_aside_waits_and_survives
     path = cache.path("scenario", key)
     place(path, b"not parquet")
     ready = tmp_path / "other-ready"
-    other = subprocess.Popen([sys.executable, "-c", STORE_ONE, str(tmp_path), key, str(ready), str(Path(__file__).parent)],
-                             env={**os.environ, "PYTHONPATH": str(ROOT)})
+    other = start_code(STORE_ONE, str(tmp_path), key, str(ready), str(Path(__file__).parent))
     deadline = time.monotonic() + 60
     while not ready.exists() and time.monotonic() < deadline and other.poll() is None:
         time.sleep(0.01)
@@ -350,11 +349,10 @@ def _tables(run_dir: Path) -> dict[str, pl.DataFrame]:
 def test_two_pipeline_jobs_sharing_one_cache_at_once_equal_sequential_runs(tmp_path):
     shared = tmp_path / "concurrent"
     go = tmp_path / "go"
-    procs = {job: subprocess.Popen(
-        [sys.executable, "-c", WAIT_THEN_RUN, str(tmp_path / f"ready-{job}"), str(go), f"paths.artifacts={shared}",
-         f"hydra.run.dir={shared}/runs/{job}", *COMMON, *JOBS[job]],
-        cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-        env={**os.environ, "PYTHONPATH": str(ROOT)}) for job in JOBS}
+    procs = {job: start_code(
+        WAIT_THEN_RUN, str(tmp_path / f"ready-{job}"), str(go), f"paths.artifacts={shared}",
+        f"hydra.run.dir={shared}/runs/{job}", *COMMON, *JOBS[job],
+        cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for job in JOBS}
     # the reference: each job alone on its own fresh cache (while the two interpreters import)
     expected = {job: _sequential_tables(tmp_path / f"sequential-{job}", job) for job in JOBS}
     deadline = time.monotonic() + 60

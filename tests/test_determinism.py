@@ -4,9 +4,6 @@ chunked."""
 
 from __future__ import annotations
 
-import os
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
@@ -14,6 +11,7 @@ import pytest
 from pipeline.run.runner import RunContext, run_experiment
 from tests.helpers.assertions import assert_same_tables
 from tests.helpers.config import composed_config, smoke_experiments
+from tests.helpers.processes import run_pipeline
 
 ROOT = Path(__file__).resolve().parents[1]
 def in_process(artifacts: Path, name: str, *overrides: str) -> Path:
@@ -25,9 +23,7 @@ def in_process(artifacts: Path, name: str, *overrides: str) -> Path:
 
 def sweep(artifacts: Path, *args: str) -> list[Path]:
     artifacts.mkdir(parents=True, exist_ok=True)
-    env = {**os.environ, "HYDRA_FULL_ERROR": "0", "PYTHONPATH": str(ROOT)}
-    proc = subprocess.run([sys.executable, "-m", "pipeline", "-m", f"paths.artifacts={artifacts}", *args],
-                          cwd=artifacts, capture_output=True, text=True, timeout=300, env=env)
+    proc = run_pipeline("-m", *args, artifacts=artifacts, timeout=300)
     assert proc.returncode == 0, proc.stderr[-3000:]
     (where,) = (artifacts / "multirun").iterdir()
     return sorted((p for p in where.iterdir() if p.is_dir() and p.name.isdigit()), key=lambda p: int(p.name))

@@ -9,10 +9,7 @@ Skipped when ray or hydra-ray-launcher is not installed (``pip install -e '.[tes
 from __future__ import annotations
 
 import json
-import os
 import shutil
-import subprocess
-import sys
 import tempfile
 from pathlib import Path
 
@@ -24,6 +21,7 @@ from tests.helpers.extras import require_extra
 require_extra("distributed", "hydra_plugins.hydra_ray_launcher", "ray")
 
 from pipeline.results.query import query  # noqa: E402  (after the skip: the module needs nothing of Ray)
+from tests.helpers.processes import run_module
 
 ROOT = Path(__file__).resolve().parents[1]
 # full tier (tests/helpers/tiers.py): the Ray launcher
@@ -41,12 +39,11 @@ def ray_temp_dir():
 
 def test_a_two_job_sweep_through_the_ray_launcher_lands_in_the_artifacts_and_is_queryable(tmp_path, ray_temp_dir):
     # relative paths.artifacts, started from tmp_path: resolved against where the sweep started
-    env = {**os.environ, "PYTHONPATH": str(ROOT), "HYDRA_FULL_ERROR": "1", "RAY_USAGE_STATS_ENABLED": "0"}
-    proc = subprocess.run(
-        [sys.executable, "-m", "pipeline", "-m", "experiment=ao_vsimm_s1", "mc.runs=2", "mc.seed=1,2",
-         "record.enabled=false", "paths.artifacts=artifacts", "hydra/launcher=ray_local",
-         "hydra.launcher.ray.init.num_cpus=2", f"++hydra.launcher.ray.init._temp_dir={ray_temp_dir}"],
-        cwd=tmp_path, capture_output=True, text=True, timeout=300, env=env)
+    proc = run_module(
+        "pipeline", "-m", "experiment=ao_vsimm_s1", "mc.runs=2", "mc.seed=1,2",
+        "record.enabled=false", "paths.artifacts=artifacts", "hydra/launcher=ray_local",
+        "hydra.launcher.ray.init.num_cpus=2", f"++hydra.launcher.ray.init._temp_dir={ray_temp_dir}",
+        cwd=tmp_path, timeout=300, env={"HYDRA_FULL_ERROR": "1", "RAY_USAGE_STATS_ENABLED": "0"})
     output = proc.stdout + proc.stderr
     assert proc.returncode == 0, output[-4000:]
     assert "Ray Launcher is launching 2 jobs" in output

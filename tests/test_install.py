@@ -6,9 +6,7 @@ from __future__ import annotations
 
 import ast
 import json
-import os
 import re
-import subprocess
 import sys
 import tomllib
 from pathlib import Path
@@ -16,6 +14,7 @@ from pathlib import Path
 import pytest
 
 from pipeline.run import environment
+from tests.helpers.processes import run_code
 
 ROOT = Path(__file__).resolve().parents[1]
 SOURCES = [p for d in ("pipeline", "filters", "hydra_plugins", "benchmarks", "tools", "tests")
@@ -172,8 +171,7 @@ def test_a_single_job_runs_without_the_sweep_launchers_dependencies(tmp_path):
         f"sys.argv = ['pipeline', 'paths.artifacts={tmp_path.as_posix()}', 'mc.runs=2', 'scenario.steps=20', "
         "'record.enabled=false']\n"
         "runpy.run_module('pipeline', run_name='__main__', alter_sys=True)\n")
-    env = {**os.environ, "PYTHONPATH": str(ROOT), "MTT_PROGRESS": "off"}
-    proc = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True, timeout=300, env=env)
+    proc = run_code(code, cwd=tmp_path, timeout=300)
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "FSIMM" in proc.stdout
 

@@ -7,7 +7,6 @@ from __future__ import annotations
 import os
 import signal
 import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -15,6 +14,7 @@ import polars as pl
 import pytest
 
 from tests.helpers.assertions import assert_same_tables
+from tests.helpers.processes import run_pipeline, start_script
 
 # full tier (tests/helpers/tiers.py): jobs killed mid-write
 pytestmark = pytest.mark.full
@@ -23,13 +23,8 @@ ROOT = Path(__file__).resolve().parents[1]
 ARGS = ["experiment=mie_los", "mc.runs=4", "variants=[a,b]"]
 
 
-def env() -> dict[str, str]:
-    return {**os.environ, "HYDRA_FULL_ERROR": "0", "PYTHONPATH": str(ROOT)}
-
-
 def run(artifacts: Path, *extra: str) -> Path:
-    proc = subprocess.run([sys.executable, "-m", "pipeline", f"paths.artifacts={artifacts}", *ARGS, *extra],
-                          cwd=artifacts, capture_output=True, text=True, timeout=300, env=env())
+    proc = run_pipeline(*ARGS, *extra, artifacts=artifacts, timeout=300)
     assert proc.returncode == 0, proc.stderr[-3000:]
     return newest_run(artifacts)
 
@@ -40,10 +35,9 @@ def newest_run(artifacts: Path) -> Path:
 
 def kill_while(artifacts: Path, mode: str, *extra: str) -> None:
     marker = artifacts / f"stalled-{mode.replace(':', '-')}"
-    proc = subprocess.Popen([sys.executable, str(ROOT / "tests" / "interrupt_runner.py"), mode, str(marker),
-                             f"paths.artifacts={artifacts}", *ARGS, *extra],
-                            cwd=artifacts, env=env(), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
-                            start_new_session=True)
+    proc = start_script(ROOT / "tests" / "interrupt_runner.py", mode, str(marker), f"paths.artifacts={artifacts}",
+                        *ARGS, *extra, cwd=artifacts, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                        start_new_session=True)
     deadline = time.monotonic() + 120
     while not marker.exists():
         if proc.poll() is not None:

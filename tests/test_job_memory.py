@@ -6,12 +6,12 @@ from __future__ import annotations
 
 import json
 import re
-import subprocess
-import sys
 import textwrap
 from pathlib import Path
 
 import pytest
+
+from tests.helpers.processes import run_code, run_module
 
 # full tier (tests/helpers/tiers.py): peak memory of whole jobs in their own processes
 pytestmark = pytest.mark.full
@@ -36,7 +36,7 @@ SCRIPT = textwrap.dedent("""
 
 
 def test_the_heap_a_job_freed_is_returned_to_the_system():
-    out = subprocess.run([sys.executable, "-c", SCRIPT], capture_output=True, text=True, check=True).stdout.split()
+    out = run_code(SCRIPT, check=True, timeout=None).stdout.split()
     trimmed, before_mb, after_mb = out[0] == "True", int(out[1]), int(out[2])
     assert trimmed, "glibc's malloc_trim did not run (this project's machines use glibc)"
     assert before_mb - after_mb > 200, f"RSS {before_mb} MB before, {after_mb} MB after the release"
@@ -80,7 +80,7 @@ def test_a_sweeps_long_lived_objects_are_frozen_once_and_later_garbage_still_col
     collections do not walk ~200 000 long-lived objects again. Once per process: a second call
     leaves the permanent generation as it is. A cycle made afterwards is still collected, and a
     frozen object is still freed when its last reference goes."""
-    out = subprocess.run([sys.executable, "-c", FREEZE], capture_output=True, text=True, check=True, cwd=ROOT).stdout
+    out = run_code(FREEZE, check=True, timeout=None).stdout
     first, second, frozen, walked_before, walked_after, *gone = out.split()
     assert (first, second) == ("True", "False")
     assert int(frozen) > 1000, frozen      # the interpreter's and pipeline's objects, the held cycle
@@ -103,9 +103,8 @@ def test_the_memory_estimate_is_not_below_a_small_jobs_measured_peak(tmp_path, e
     job on a fresh clone compiles them, which adds to that job's peak (study 004's particle kernel
     ~0.2 GB), so a short job runs first to compile, and the second run is measured."""
     def run(artifacts: Path, *overrides: str) -> tuple[float, float]:
-        proc = subprocess.run([sys.executable, "-m", "pipeline", f"experiment={experiment}", "mc.runs=2",
-                               f"paths.artifacts={artifacts}", *overrides], cwd=ROOT, capture_output=True, text=True,
-                              check=True)
+        proc = run_module("pipeline", f"experiment={experiment}", "mc.runs=2", f"paths.artifacts={artifacts}",
+                          *overrides, check=True, timeout=None)
         estimated_gb = float(re.search(r"memory: about ([0-9.]+) GB", proc.stdout + proc.stderr).group(1))
         (status,) = (artifacts / "runs").glob("*/*/status.json")
         return estimated_gb, json.loads(status.read_text())["peak_rss_mb"]
@@ -132,8 +131,7 @@ def test_a_jobs_peak_memory_is_its_own_not_its_parents(tmp_path):
     """status.json's peak_rss_mb came from getrusage's ru_maxrss, which Linux carries over from the
     parent through subprocess's vfork and exec: a job started from a pytest worker reported 831 MB,
     the worker's, for its own 381 MB."""
-    out = subprocess.run([sys.executable, "-c", PARENT, str(tmp_path)], cwd=ROOT, capture_output=True, text=True,
-                         check=True).stdout
+    out = run_code(PARENT, str(tmp_path), check=True, timeout=None).stdout
     assert float(out.strip()) < 600, f"the job reported {out.strip()} MB, its parent held 700 MB"
 
 

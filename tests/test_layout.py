@@ -2,11 +2,13 @@
 one way: filters import nothing of pipeline; the shared pipeline modules import no particular study
 (only the base they all extend, pipeline.studies.single_target); a study imports no other study.
 Every import counts, a function's lazy one too: a circle through a lazy import is still a circle a
-reader has to untangle."""
+reader has to untangle. The tests are laid out the same way: what several test files share is in
+tests/helpers/, and no file of tests/ reaches into a test file or conftest.py."""
 
 from __future__ import annotations
 
 import ast
+import re
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -125,3 +127,47 @@ def test_the_top_level_stays_small():
 def test_the_circle_finder_finds_a_circle():
     assert circles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
     assert circles({"a": {"b"}, "b": set()}) == []
+
+
+# ---- the tests' own layout ---------------------------------------------------------------------------
+TEST_MODULE = re.compile(r"\btests\.(test_\w+|conftest)\b")
+
+
+def reaches_into_test_modules(path: Path, tests: Path) -> list[str]:
+    """What ``path`` takes from a test module or conftest that is not itself: an import (a lazy one
+    too, and ``from tests import conftest``) or a dotted name in a string (a code string a child
+    runs, a Hydra ``_target_``). A file may name its own module (its classes as ``_target_``)."""
+    own = "tests." + path.relative_to(tests).with_suffix("").as_posix().replace("/", ".")
+    found = []
+    for node in ast.walk(ast.parse(path.read_text())):
+        names = []
+        if isinstance(node, ast.Import):
+            names = [a.name for a in node.names]
+        elif isinstance(node, ast.ImportFrom) and node.module:
+            names = [node.module] + ([f"tests.{a.name}" for a in node.names] if node.module == "tests" else [])
+        elif isinstance(node, ast.Constant) and isinstance(node.value, str):
+            names = [m.group(0) for m in TEST_MODULE.finditer(node.value)]
+        for name in names:
+            match = TEST_MODULE.match(name)
+            if match and f"tests.{match.group(1)}" != own:
+                found.append(f"{path.relative_to(tests.parent)}:{node.lineno}: {name}")
+    return found
+
+
+def test_no_file_of_tests_reaches_into_another_test_file_or_conftest():
+    tests = ROOT / "tests"
+    found = [hit for path in sorted(tests.rglob("*.py")) for hit in reaches_into_test_modules(path, tests)]
+    assert found == [], "move what is shared into tests/helpers/:\n" + "\n".join(found)
+
+
+def test_the_test_module_finder_finds_each_way_in(tmp_path):
+    tests = tmp_path / "tests"
+    tests.mkdir()
+    t = "tests"                      # spelled apart: this file holds to the rule it tests
+    (tests / "test_mine.py").write_text(
+        f"from {t}.test_other import x\nimport {t}.conftest\nfrom {t} import conftest\n"
+        f"def f():\n    from {t}.test_lazy import y\n"
+        f"CODE = 'from {t}.test_child import z'\nTARGET = '{t}.test_mine.Mine'\n"
+        f"from {t}.helpers.runs import run_in_process\n")
+    assert [hit.split(": ")[1] for hit in reaches_into_test_modules(tests / "test_mine.py", tests)] == [
+        f"{t}.{name}" for name in ("test_other", "conftest", "conftest", "test_lazy", "test_child")]

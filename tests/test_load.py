@@ -4,13 +4,12 @@ workers' memory stays bounded (no growth from job to job in the pooled processes
 from __future__ import annotations
 
 import json
-import os
 import statistics
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
+
+from tests.helpers.processes import run_pipeline
 
 # full tier (tests/helpers/tiers.py): a fifty-job sweep's memory
 pytestmark = pytest.mark.full
@@ -21,11 +20,8 @@ JOBS = 50
 
 @pytest.mark.slow
 def test_fifty_job_joblib_sweep_completes_with_bounded_memory(tmp_path):
-    env = {**os.environ, "HYDRA_FULL_ERROR": "0", "PYTHONPATH": str(ROOT)}
-    proc = subprocess.run(
-        [sys.executable, "-m", "pipeline", "-m", f"paths.artifacts={tmp_path}", f"mc.seed=range({JOBS})",
-         "mc.runs=2", "scenario.steps=30", "record.enabled=false", "hydra/launcher=joblib", "hydra.launcher.n_jobs=2"],
-        cwd=tmp_path, capture_output=True, text=True, timeout=600, env=env)
+    proc = run_pipeline("-m", f"mc.seed=range({JOBS})", "mc.runs=2", "scenario.steps=30", "record.enabled=false",
+                        "hydra/launcher=joblib", "hydra.launcher.n_jobs=2", artifacts=tmp_path, timeout=600)
     assert proc.returncode == 0, proc.stderr[-3000:]
 
     from pipeline.results.query import query

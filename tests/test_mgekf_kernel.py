@@ -12,6 +12,7 @@ import pytest
 
 from filters.mgekf import KFPlusMGEKF, OnlyMGEKF, PlainEKF
 from tests.helpers.filter_inputs import sonar_reports
+from tests.helpers.processes import run_code
 
 TRACKERS = [
     pytest.param(lambda e: KFPlusMGEKF(handover_acceleration_variance=0.1, engine=e), id="KF+MGEKF-paper-like"),
@@ -98,10 +99,7 @@ def test_the_kernel_is_loaded_before_the_clock_with_the_one_specialisation_every
     a specialisation of its own, the second loaded inside the clock). A fresh interpreter, since
     this one has called the kernel already."""
     import pickle
-    import subprocess
-    import sys
 
-    from tests.helpers.config import ROOT
 
     path = tmp_path / "reports.pkl"
     path.write_bytes(pickle.dumps(reports))
@@ -116,6 +114,6 @@ def test_the_kernel_is_loaded_before_the_clock_with_the_one_specialisation_every
             "assert mgekf_kernel._warm\n"
             "KFPlusMGEKF().run(frozen)\n"
             "print(len(mgekf_kernel.track_block.signatures))\n")
-    proc = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=300)
+    proc = run_code(code, timeout=300)
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert proc.stdout.strip() == "1"

@@ -5,8 +5,6 @@ particles and random numbers, its independence of chunks, threads and batch, and
 from __future__ import annotations
 
 import os
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -16,6 +14,7 @@ from numba import njit
 from filters.particle import kernel
 from filters.particle import MultipleModelParticleFilter
 from tests.helpers.filter_inputs import buoy_reports
+from tests.helpers.processes import run_code
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -120,8 +119,7 @@ def test_the_compiled_scan_is_cached_where_it_can_be_written_and_a_new_process_l
             "from filters.particle import kernel\n"
             "MultipleModelParticleFilter(particles=50).run(buoy_reports(runs=1, duration=10.0)[1])\n"
             "print(sum(kernel.scan.stats.cache_hits.values()), sum(kernel.scan.stats.cache_misses.values()))\n")
-    out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, env=dict(os.environ, PYTHONPATH=str(ROOT)),
-                         capture_output=True, text=True, check=True).stdout.split()
+    out = run_code(code, check=True, timeout=None).stdout.split()
     assert (int(out[-2]), int(out[-1])) == (1, 0), out          # loaded, not compiled again
 
 

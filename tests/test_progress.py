@@ -4,16 +4,14 @@ for a terminal, a pipe and a sweep, and what a real run and a real sweep print (
 from __future__ import annotations
 
 import io
-import os
 import re
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 
 from filters.progress import SILENT, current
 from pipeline.run.progress import DELAY, INTERVAL, Reporter, Task, choose_mode, duration
+from tests.helpers.processes import run_pipeline
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -151,9 +149,7 @@ def test_the_mode_a_bar_on_a_terminal_lines_in_a_pipe_or_a_sweep():
     assert [duration(s) for s in (0.4, 28, 99.6, 245, 3725)] == ["0 s", "28 s", "1 min 40 s", "4 min 05 s", "1 h 02 min"]
 
 
-def _env() -> dict[str, str]:
-    env = {k: v for k, v in os.environ.items() if k != "MTT_PROGRESS"}
-    return {**env, "HYDRA_FULL_ERROR": "0", "PYTHONPATH": str(ROOT)}
+UNFORCED = {"MTT_PROGRESS": None}       # the child chooses its progress mode by its stderr, as a user's does
 
 
 LOG_LINE = re.compile(r"^\[\d\d:\d\d:\d\d\] ")
@@ -162,10 +158,8 @@ LOG_LINE = re.compile(r"^\[\d\d:\d\d:\d\d\] ")
 def test_a_real_run_in_a_pipe_prints_log_lines_and_no_bar(tmp_path):
     """stderr a pipe: whatever progress there is comes as plain log lines, never a bar (no carriage
     returns, no bar characters); the summary table on stdout is as before."""
-    proc = subprocess.run(
-        [sys.executable, "-m", "pipeline", f"paths.artifacts={tmp_path}", "experiment=sonobuoy_case2", "mc.runs=2",
-         "++scenario.duration=300", "++target_model.particles=300", "record.enabled=false"],
-        cwd=tmp_path, capture_output=True, text=True, timeout=300, env=_env())
+    proc = run_pipeline("experiment=sonobuoy_case2", "mc.runs=2", "++scenario.duration=300", "++target_model.particles=300",
+                        "record.enabled=false", artifacts=tmp_path, timeout=300, env=UNFORCED)
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "\r" not in proc.stderr and "%|" not in proc.stderr and "\x1b[" not in proc.stderr
     assert all(LOG_LINE.match(line) for line in proc.stderr.splitlines()), proc.stderr
@@ -181,11 +175,9 @@ def test_a_real_run_in_a_pipe_prints_log_lines_and_no_bar(tmp_path):
 def test_a_sweeps_lines_and_tables_name_their_job(tmp_path, launcher):
     """Two jobs at once on one terminal: every log line of a job carries "[job N]", and each job's
     printed summary is headed by its job number and its overrides."""
-    proc = subprocess.run(
-        [sys.executable, "-m", "pipeline", "-m", f"paths.artifacts={tmp_path}", "mc.runs=2", "scenario.steps=30",
-         "record.enabled=false", "variants=[fsimm]", "mc.seed=1,2", f"hydra/launcher={launcher}",
-         "hydra.launcher.n_jobs=2"],
-        cwd=tmp_path, capture_output=True, text=True, timeout=300, env=_env())
+    proc = run_pipeline("-m", "mc.runs=2", "scenario.steps=30", "record.enabled=false", "variants=[fsimm]", "mc.seed=1,2",
+                        f"hydra/launcher={launcher}", "hydra.launcher.n_jobs=2", artifacts=tmp_path, timeout=300,
+                        env=UNFORCED)
     assert proc.returncode == 0, proc.stderr[-3000:]
     job_lines = [line for line in proc.stderr.splitlines() if LOG_LINE.match(line)]
     assert job_lines and all(re.match(r"^\[\d\d:\d\d:\d\d\] \[job [01]\] ", line) for line in job_lines), job_lines

@@ -8,7 +8,6 @@ with ``status.json``, ``summary.parquet`` and ``metrics.parquet``; hidden temp f
 from __future__ import annotations
 
 import io
-import subprocess
 import sys
 from pathlib import Path
 
@@ -20,6 +19,8 @@ from pipeline.results.query import QueryError, QueryWarning, load_tables, main, 
 from tests.helpers.artifacts_tree import (
     EXAMPLE, RUN_AO, RUN_CV, RUN_TRUNC, SWEEP, TRACEBACK, make_tree, write_status, write_summary,
 )
+from tests.helpers.processes import run_module
+
 
 @pytest.fixture()
 def root(tmp_path: Path) -> Path:
@@ -243,10 +244,7 @@ def test_missing_and_empty_root_exit_2(tmp_path, capsys):
 
 
 def test_module_entry_point_subprocess(root):
-    repo = Path(__file__).resolve().parents[1]
-    ok = subprocess.run([sys.executable, "-m", "pipeline.query", "sql", EXAMPLE, "--root",
-                         str(root), "--sweep", SWEEP], cwd=repo, capture_output=True, text=True)
+    ok = run_module("pipeline.query", "sql", EXAMPLE, "--root", str(root), "--sweep", SWEEP, timeout=None)
     assert ok.returncode == 0 and "AO-VSIMM" in ok.stdout and "filters.vsimm.t1_mu" in ok.stdout
-    bad = subprocess.run([sys.executable, "-m", "pipeline.query", "sql", "SELECT nope FROM runs",
-                          "--root", str(root)], cwd=repo, capture_output=True, text=True)
+    bad = run_module("pipeline.query", "sql", "SELECT nope FROM runs", "--root", str(root), timeout=None)
     assert bad.returncode == 2 and "Traceback" not in bad.stderr and "nope" in bad.stderr

@@ -10,13 +10,13 @@ runs). With Rerun's file sink the three limits gave: "File-writer thread shut do
 from __future__ import annotations
 
 import json
-import os
 import resource
 import subprocess
-import sys
 from pathlib import Path
 
 import pytest
+
+from tests.helpers.processes import run_pipeline
 
 # full tier (tests/helpers/tiers.py): jobs under a file-size limit in their own processes
 pytestmark = pytest.mark.full
@@ -29,11 +29,9 @@ def test_a_recording_over_the_file_size_limit_fails_the_job_within_seconds(tmp_p
     def limit_file_size() -> None:
         resource.setrlimit(resource.RLIMIT_FSIZE, (limit_kb * 1024, limit_kb * 1024))
 
-    env = {**os.environ, "HYDRA_FULL_ERROR": "0", "PYTHONPATH": str(ROOT)}
     try:
-        proc = subprocess.run([sys.executable, "-m", "pipeline", "experiment=ao_vsimm_s1", "mc.runs=2",
-                               f"paths.artifacts={tmp_path}", *extra], cwd=tmp_path, env=env, capture_output=True,
-                              text=True, timeout=30, preexec_fn=limit_file_size)
+        proc = run_pipeline("experiment=ao_vsimm_s1", "mc.runs=2", *extra, artifacts=tmp_path, timeout=30,
+                            preexec_fn=limit_file_size)
     except subprocess.TimeoutExpired:
         pytest.fail("the job hung writing the recording (killed after 30 s)")
     assert proc.returncode != 0, proc.stderr[-2000:]

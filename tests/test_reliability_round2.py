@@ -5,7 +5,6 @@ from __future__ import annotations
 import json
 import os
 import re
-import subprocess
 import sys
 from pathlib import Path
 
@@ -16,7 +15,7 @@ import pytest
 from pipeline.errors import ConfigError
 from pipeline.evaluation.faults import FAULTS, fault_flags, fault_summary
 from pipeline.storage.store import inside
-from tests.helpers.processes import run_pipeline
+from tests.helpers.processes import run_code, run_module, run_pipeline
 from tests.helpers.runs import run_in_process
 
 
@@ -274,9 +273,7 @@ def test_an_exactly_singular_covariance_flags_the_runs_and_the_job_goes_on(tmp_p
 ])
 def test_bad_paths_and_keys_get_a_paragraph_and_exit_2(tmp_path, args, says):
     """Item 13: /proc/x, a path under a file and an unknown key gave tracebacks or exit 1."""
-    proc = subprocess.run([sys.executable, "-m", "pipeline", "record.enabled=false", *args], cwd=tmp_path,
-                          capture_output=True, text=True, timeout=120,
-                          env={**os.environ, "PYTHONPATH": str(Path(__file__).parents[1])})
+    proc = run_module("pipeline", "record.enabled=false", *args, cwd=tmp_path, timeout=120)
     assert proc.returncode == 2, proc.stderr
     assert says in proc.stderr and "Traceback" not in proc.stderr
 
@@ -308,9 +305,8 @@ def test_a_running_job_whose_process_is_gone_is_listed_as_interrupted(tmp_path):
     """Item 16: killed runs stayed 'running' forever in mtt-query list."""
     from pipeline.run.process import identity
     from pipeline.results.query import runs_frame
-    gone = json.loads(subprocess.run([sys.executable, "-c", "import json; from pipeline.run.process import identity; "
-                                      "print(json.dumps(identity()))"], capture_output=True, text=True, check=True,
-                                     env={**os.environ, "PYTHONPATH": str(Path(__file__).parents[1])}).stdout)
+    gone = json.loads(run_code("import json; from pipeline.run.process import identity; print(json.dumps(identity()))",
+                               check=True, timeout=None).stdout)
     for name, process in (("killed", gone), ("alive", identity()), ("elsewhere", {**gone, "host": "another-host"})):
         folder = tmp_path / "runs" / "ao_vsimm_s1" / name
         folder.mkdir(parents=True)

@@ -10,7 +10,7 @@ from pathlib import Path
 import polars as pl
 import pytest
 
-from tests.helpers.processes import run_pipeline
+from tests.helpers.processes import run_pipeline, start_code
 from tests.helpers.runs import job
 
 
@@ -177,9 +177,7 @@ time.sleep(60)                                               # a live writer, be
 
 def _writer(cache: Path, how: str):
     import subprocess
-    import sys
-    proc = subprocess.Popen([sys.executable, "-c", _WRITE_AND_STOP, str(cache), how], stdout=subprocess.PIPE,
-                            text=True, env={**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])})
+    proc = start_code(_WRITE_AND_STOP, str(cache), how, stdout=subprocess.PIPE, text=True)
     name = proc.stdout.readline().strip()
     return proc, cache / "track" / name
 

@@ -4,8 +4,6 @@ gets an index; a bad report definition is refused before any stage."""
 
 from __future__ import annotations
 
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -14,9 +12,9 @@ import pytest
 
 from pipeline.errors import ConfigError
 from pipeline.results.report import ReportError, ReportSpec, TargetSpec, evaluate_target, load_run, main, write_reports
-from tests.helpers.processes import ROOT
 from tests.helpers.report_targets import CROSS, RATIO, SMALL, THRESHOLD, around, tables_with_resamples
 from tests.helpers.runs import run_in_process
+from tests.helpers.processes import run_module
 
 
 
@@ -88,8 +86,7 @@ def test_latest_is_the_newest_of_single_runs_and_sweeps(tmp_path, capsys):
 
 def test_check_fails_the_command_when_a_target_fails(small_run, tmp_path):
     """--check: exit 1 when any target is FAIL or ERROR (at 3 runs of 60 steps some S2 targets fail)."""
-    proc = subprocess.run([sys.executable, "-m", "pipeline.report", str(small_run), "--out", str(tmp_path), "--check"],
-                          cwd=ROOT, capture_output=True, text=True, timeout=120)
+    proc = run_module("pipeline.report", str(small_run), "--out", str(tmp_path), "--check", timeout=120)
     results = load_run(small_run)
     verdicts = [evaluate_target(results, t).verdict for t in ReportSpec.from_config(results.config["report"]).targets]
     assert proc.returncode == (1 if set(verdicts) & {"FAIL", "ERROR"} else 0), proc.stdout + proc.stderr

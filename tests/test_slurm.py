@@ -6,9 +6,6 @@ usual layout, with the sweep summary written by the submitting process's callbac
 from __future__ import annotations
 
 import json
-import os
-import subprocess
-import sys
 from pathlib import Path
 
 import polars as pl
@@ -16,6 +13,7 @@ import pytest
 from hydra import compose, initialize_config_dir
 
 from tests.helpers.extras import require_extra
+from tests.helpers.processes import run_module
 
 # .ci/run sets MTT_REQUIRE_SLURM=1: in CI a missing extra fails instead of skipping
 require_extra("slurm", "hydra_plugins.hydra_submitit_launcher", "submitit")
@@ -38,11 +36,10 @@ def test_the_slurm_launcher_config_composes_with_overridable_resources():
 
 def test_a_two_job_sweep_through_submitit_local_lands_in_the_artifacts_with_its_summary(tmp_path):
     # relative paths.artifacts, started from tmp_path: resolved against where the sweep started
-    env = {**os.environ, "PYTHONPATH": str(ROOT), "HYDRA_FULL_ERROR": "1"}
-    proc = subprocess.run(
-        [sys.executable, "-m", "pipeline", "-m", "experiment=ao_vsimm_s1", "mc.runs=2", "mc.seed=1,2",
-         "scenario.steps=60", "record.enabled=false", "paths.artifacts=artifacts", "hydra/launcher=submitit_local"],
-        cwd=tmp_path, capture_output=True, text=True, timeout=180, env=env)
+    proc = run_module(
+        "pipeline", "-m", "experiment=ao_vsimm_s1", "mc.runs=2", "mc.seed=1,2",
+        "scenario.steps=60", "record.enabled=false", "paths.artifacts=artifacts", "hydra/launcher=submitit_local",
+        cwd=tmp_path, timeout=180, env={"HYDRA_FULL_ERROR": "1"})
     assert proc.returncode == 0, (proc.stdout + proc.stderr)[-4000:]
     assert "Submitit 'local' sweep output dir" in proc.stdout and "2 jobs, 2 ok, 0 failed" in proc.stderr
 

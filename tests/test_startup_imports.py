@@ -12,10 +12,10 @@ from __future__ import annotations
 import json
 import os
 import subprocess
-import sys
 from pathlib import Path
 
-from tests.helpers.config import ROOT
+from tests.helpers.processes import run_code
+
 
 NOT_AT_IMPORT = ["scipy", "matplotlib", "numba", "rerun", "stonesoup", "optuna", "submitit", "tqdm"]
 # a job without a recording on no terminal. It imports numba: study 001's IMMs run compiled
@@ -29,8 +29,8 @@ _LOADED = "import json, sys; print(json.dumps(sorted(m for m in {names!r} if m i
 
 
 def _python(code: str, cwd: Path) -> subprocess.CompletedProcess:
-    env = {**os.environ, "HYDRA_FULL_ERROR": "1", "PYTHONPATH": str(ROOT)}
-    return subprocess.run([sys.executable, "-c", code], cwd=cwd, capture_output=True, text=True, timeout=300, env=env)
+    # the progress mode as the user's shell sets it (MTT_PROGRESS=off could spare an import this test looks for)
+    return run_code(code, cwd=cwd, timeout=300, env={"HYDRA_FULL_ERROR": "1", "MTT_PROGRESS": os.environ.get("MTT_PROGRESS")})
 
 
 def test_importing_the_runner_and_the_app_loads_none_of_the_heavy_modules(tmp_path):

@@ -7,13 +7,12 @@ TerminatedWorkerError out of the whole sweep, the later jobs never run, the runn
 from __future__ import annotations
 
 import json
-import os
-import subprocess
-import sys
 from pathlib import Path
 
 import polars as pl
 import pytest
+
+from tests.helpers.processes import run_pipeline
 
 # full tier (tests/helpers/tiers.py): sweeps across processes, killed jobs
 pytestmark = pytest.mark.full
@@ -25,12 +24,11 @@ KILLED_JOB = 1            # the one job of three whose filter SIGKILLs its own p
 
 @pytest.mark.smoke          # the isolated launcher sends each job with cloudpickle: what joblib 1.6 moved
 def test_a_killed_job_fails_alone_and_the_sweep_summary_lists_it(tmp_path):
-    env = {**os.environ, "HYDRA_FULL_ERROR": "0", "PYTHONPATH": str(ROOT)}
-    proc = subprocess.run(
-        [sys.executable, "-m", "pipeline", "-m", f"paths.artifacts={tmp_path}", "mc.runs=2", "scenario.steps=20",
-         "record.enabled=false", "variants=[fsimm]", "filters.fsimm._target_=tests.faulty_filters.SelfKillingFSIMM", "plugins.packages=[tests]",
-         "+filters.fsimm.sigkill=false,true,false", f"hydra/launcher={LAUNCHER}", "hydra.launcher.n_jobs=2"],
-        cwd=tmp_path, capture_output=True, text=True, timeout=120, env=env)
+    proc = run_pipeline(
+        "-m", "mc.runs=2", "scenario.steps=20",
+        "record.enabled=false", "variants=[fsimm]", "filters.fsimm._target_=tests.faulty_filters.SelfKillingFSIMM", "plugins.packages=[tests]",
+        "+filters.fsimm.sigkill=false,true,false", f"hydra/launcher={LAUNCHER}", "hydra.launcher.n_jobs=2",
+        artifacts=tmp_path, timeout=120)
     assert proc.returncode == 1, proc.stderr[-3000:]      # the sweep returns, reporting its one failed job
     assert "3 jobs, 2 ok, 1 failed" in proc.stderr, proc.stderr[-3000:]
 

@@ -343,12 +343,10 @@ def test_gc_keeps_an_entry_that_a_store_renamed_onto_the_name_after_the_listing(
 def test_gc_while_a_job_runs_loses_nothing(tmp_path):
     """A job writes its stages while gc --apply runs in a loop: the job ends ok, every table it
     published reads with its checksum, and every cache entry it refers to is there."""
-    from tests.helpers.processes import run_pipeline
+    from tests.helpers.processes import start_pipeline
     old = _entry(tmp_path, "track", "o00000000000000", 7200.0)     # unreferenced and old: gc's work
-    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
-    job = subprocess.Popen([sys.executable, "-m", "pipeline", f"paths.artifacts={tmp_path}", "mc.runs=40",
-                            "record.enabled=false"], cwd=tmp_path, env=env, stdout=subprocess.PIPE,
-                           stderr=subprocess.STDOUT)
+    job = start_pipeline("mc.runs=40", "record.enabled=false", artifacts=tmp_path, stdout=subprocess.PIPE,
+                         stderr=subprocess.STDOUT)
     passes = 0
     while job.poll() is None:
         gc.apply(gc.plan(tmp_path, grace_s=0))
@@ -365,7 +363,6 @@ def test_gc_while_a_job_runs_loses_nothing(tmp_path):
         read_table(run.path / table)
     # and a later gc still keeps what the finished run refers to
     assert gc.plan(tmp_path, grace_s=0).entries == []
-    del cli
 
 
 def test_two_sweeps_are_diffed_job_by_job_paired_by_their_swept_values(edited_runs, capsys):

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from tests.helpers.config import composed
+from tests.helpers.processes import run_command, run_pipeline
 
 
 # ---- (d) sensors.noise_std=20 and =20.0 are one cache key ---------------------------------------------
@@ -43,13 +44,7 @@ def test_an_integral_number_typed_as_int_or_float_gives_one_cache_key():
 # ---- (e) a typo in a key or an option gets the close names, one paragraph -------------------------------
 
 def _cli(tmp_path, *args: str):
-    import os
-    import subprocess
-    import sys
-    from pathlib import Path
-    env = {**os.environ, "HYDRA_FULL_ERROR": "0", "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
-    return subprocess.run([sys.executable, "-m", "pipeline", f"paths.artifacts={tmp_path}", *args], cwd=tmp_path,
-                          capture_output=True, text=True, timeout=120, env=env)
+    return run_pipeline(*args, artifacts=tmp_path)
 
 
 @pytest.mark.parametrize("args, says", [
@@ -134,9 +129,7 @@ DOC = Path(__file__).resolve().parents[1] / "docs" / "your-own-filter.md"
 
 def test_the_documented_own_filter_example_runs_verbatim_in_a_fresh_folder(tmp_path):
     """Before: no such page; the README pointed at docs/your-own-study.md, which had no example."""
-    import os
     import re
-    import subprocess
     import sys
     text = DOC.read_text()
     files = re.findall(r"<!-- file: (\S+) -->\n```\w*\n(.*?)```", text, re.S)
@@ -146,11 +139,10 @@ def test_the_documented_own_filter_example_runs_verbatim_in_a_fresh_folder(tmp_p
     for path, body in files:
         (tmp_path / path).parent.mkdir(parents=True, exist_ok=True)
         (tmp_path / path).write_text(body)
-    env = {**os.environ, "HYDRA_FULL_ERROR": "0", "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
     for i, command in enumerate(commands):
         assert command.startswith("python -m pipeline ")
         line = command.strip().replace("python -m", f"{sys.executable} -m", 1) + f" paths.artifacts=art{i}"
-        proc = subprocess.run(["bash", "-c", line], cwd=tmp_path, capture_output=True, text=True, timeout=300, env=env)
+        proc = run_command(["bash", "-c", line], cwd=tmp_path, timeout=300)
         assert proc.returncode == 0, proc.stderr[-2000:]
         assert "Differenced" in proc.stdout and "FSIMM" in proc.stdout
         (written,) = (tmp_path / f"art{i}" / "runs" / "ao_vsimm_s1").glob("*/estimates/mine.parquet")
