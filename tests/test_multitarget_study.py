@@ -240,7 +240,7 @@ def test_reduced_crossing_run_evaluates_its_targets_and_the_docs_tables(tmp_path
     tools/multitarget_tables.py, which made docs/studies/multitarget.md's tables, reads every variant and
     the IMM-minus-CV pairs from its summary."""
     from pipeline.results.report import write_reports
-    from tests.test_pipeline import run_in_process
+    from tests.helpers.runs import run_in_process
     from tools.multitarget_tables import main, tables
     _, ctx = run_in_process(tmp_path, "multitarget_crossing", "experiment=multitarget_crossing", "mc.runs=2",
                             "variants=[gnn,jpda,imm_gnn,imm_jpda]")
@@ -256,7 +256,7 @@ def test_reduced_crossing_run_evaluates_its_targets_and_the_docs_tables(tmp_path
 
 
 def test_the_readme_links_the_study_page_and_the_page_its_experiments():
-    from tests.conftest import ROOT
+    from tests.helpers.config import ROOT
     page = ROOT / "docs" / "studies" / "multitarget.md"
     assert "docs/studies/multitarget.md" in (ROOT / "README.md").read_text()
     text = page.read_text()
