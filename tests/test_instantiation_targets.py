@@ -1,5 +1,5 @@
-"""Issue 37 (reliability, round 3), items 5-7: what a config, the command line and a stored run folder
-may instantiate. Each case is one that ran code or truncated a file before."""
+"""What a config, the command line and a stored run folder may instantiate (issue 37, items 5-7).
+Each case is one that ran code or truncated a file before."""
 
 from __future__ import annotations
 
@@ -223,7 +223,7 @@ def test_a_stored_folders_own_plugins_packages_are_not_taken_on_its_word(tmp_pat
     from pipeline.results.recompute import main
     marker = tmp_path / "built.txt"
     run = stored_run(tmp_path, packages=["tests"], tables={"mark": {
-        "_target_": "tests.test_reliability_round3_targets.MarkingTable", "marker": str(marker)}})
+        "_target_": "tests.test_instantiation_targets.MarkingTable", "marker": str(marker)}})
     assert main([str(run)]) == 2
     assert not marker.exists()
     (line,) = capsys.readouterr().err.strip().splitlines()
@@ -240,7 +240,7 @@ def test_rerun_takes_a_stored_folders_plugins_packages_only_from_the_command_lin
     marker = tmp_path / "built.txt"
     # two variants of one display name: refused once the report tables are built, before any stage
     run = stored_run(tmp_path, packages=["tests"], tables={"mark": {
-        "_target_": "tests.test_reliability_round3_targets.MarkingTable", "marker": str(marker)}},
+        "_target_": "tests.test_instantiation_targets.MarkingTable", "marker": str(marker)}},
         **{"filters.vsimm.name": "FSIMM"})
     assert main([str(run)]) == 2
     assert not marker.exists()

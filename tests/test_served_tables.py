@@ -1,5 +1,5 @@
-"""Issue 37 (reliability, round 3), items 9-13: what the query, the report and a sweep's aggregation
-serve from a run folder. Each test is the case that went wrong, on a copy of the session's smoke run
+"""What the query, the report and a sweep's aggregation serve from a run folder (issue 37, items
+9-13). Each test is the case that went wrong, on a copy of the session's smoke run
 (tests/conftest.py), in-process."""
 
 from __future__ import annotations
