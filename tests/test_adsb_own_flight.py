@@ -19,7 +19,9 @@ from pipeline.errors import ConfigError
 from pipeline.studies.adsb.flight import build_flight
 from pipeline.studies.adsb.reading import FOOT, find_flight_file, load_flight
 from pipeline.studies.adsb.scenario import RecordedFlight
-from tests.test_pipeline import cli, compose_cfg, run_in_process
+from tests.helpers.config import composed_config
+from tests.helpers.processes import run_pipeline
+from tests.helpers.runs import run_in_process
 
 EPOCH = 1_600_000_000.0
 SITE = (45.0, 7.0, 0.0)
@@ -101,7 +103,7 @@ def test_a_radar_beyond_its_range_is_refused_before_any_stage(tmp_path):
     with pytest.raises(ConfigError, match=r"500 km at bearing 180 deg .* beyond its range of 463 km .* shorter window"):
         FlightStudy().check(far, Radar3D(max_range=463_000.0), {})
     FlightStudy().check(far, Radar3D(), {})                                 # no max_range: no limit
-    proc = cli(tmp_path, *overrides)                                        # the command line: exit 2, no traceback
+    proc = run_pipeline(*overrides, artifacts=tmp_path)                                        # the command line: exit 2, no traceback
     assert proc.returncode == 2 and "sensors.max_range: the radar site" in proc.stderr
     assert "Traceback" not in proc.stderr
 
@@ -136,7 +138,7 @@ def test_a_window_longer_than_the_flight_lists_its_longest_segments_and_null_tak
 # ---- 3. the cleaning thresholds are keys ------------------------------------------------------------
 def test_the_cleaning_thresholds_are_keys_of_the_scenario(tmp_path):
     path, _ = _many_segments(tmp_path)
-    cfg = compose_cfg("experiment=adsb_jet", f"scenario.flight={path}", "scenario.max_gap=60",
+    cfg = composed_config("experiment=adsb_jet", f"scenario.flight={path}", "scenario.max_gap=60",
                       "scenario.max_speed=400", "scenario.max_vertical_speed=100", "scenario.turn_threshold=2",
                       "scenario.climb_threshold=3", "scenario.duration=null")
     from pipeline.run.config import build
